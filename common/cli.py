@@ -3,12 +3,70 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+
+
+def cmd_label(args) -> int:
+    from forcegrasp.labeling import label_object
+    from forcegrasp.labels import save_label
+    from forcegrasp.objects import ObjectFileError, load_object
+
+    try:
+        obj = load_object(args.object)
+    except ObjectFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    label = label_object(obj, mass_scale=args.mass_scale, seed=args.seed)
+    checks = label.checks
+    ok = (
+        checks["functional_contact"]
+        and checks["max_penetration_m"] < 0.002
+        and checks["object_moved_m"] < 0.01
+        and checks["pregrasp_clearance_m"] > 0
+    )
+    print(json.dumps(checks, indent=2))
+    print(
+        f"functional finger touches {'/'.join(obj.functional_part)}: {checks['functional_contact']} "
+        f"(gap {checks['functional_gap_m'] * 1000:.1f} mm)\n"
+        f"max penetration while holding: {checks['max_penetration_m'] * 1000:.2f} mm (limit 2 mm)\n"
+        f"object moved while holding 1 s: {checks['object_moved_m'] * 1000:.2f} mm (limit 10 mm)\n"
+        f"pre-grasp clearance: {checks['pregrasp_clearance_m'] * 1000:.1f} mm (no contact)"
+    )
+    if args.dry_run:
+        return 0 if ok else 1
+    if not ok:
+        print("checks failed: label not written", file=sys.stderr)
+        return 1
+    from forcegrasp.labels import save_label
+
+    path = save_label(label, args.out)
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_objects(args) -> int:
+    from forcegrasp.objects import list_objects, load_object
+
+    for name in list_objects():
+        print(f"{name:14s} {load_object(name).description}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="forcegrasp", description=__doc__)
-    parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("label", help="find the goal grasp and pre-grasp of an object and write its label")
+    p.add_argument("object", help="object name (a file under assets/objects/)")
+    p.add_argument("--mass-scale", type=float, default=5.0, help="mass scale for the approach check")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="label path (default assets/labels/OBJECT.json)")
+    p.add_argument("--dry-run", action="store_true", help="run and check, write nothing")
+    p.set_defaults(func=cmd_label)
+
+    p = sub.add_parser("objects", help="list the objects")
+    p.set_defaults(func=cmd_objects)
     return parser
 
 

@@ -1,0 +1,304 @@
+"""FunctionalGrasp: move the ADROIT hand from a pre-grasp to a goal functional grasp by touch.
+
+The paper's MDP (sections III-V of ``functional-grasp-force-feedback.tex``), one env per file.
+
+Observation (Table I; 77 float32, 53 without force feedback), in this order:
+
+    ====================  ====  =================================================================
+    joint_torques F        24   actuator force of each hand joint servo (N·m): what a joint
+                                torque sensor reads; optional Gaussian noise N(0, sigma) N·m
+    joint_angles J         24   hand joint angles (rad)
+    hand_pose              6    the base's driving joints: 3 slides (m) and 3 hinges (rad)
+    h                      1    observed progress 1 - 0.5 max_i |j_i - j_i^g| / range_i
+    base_targets           6    the base servo targets the policy has commanded
+    prev_hand_pose         6    hand_pose at the previous step
+    prev_h                 1    h at the previous step
+    goal_pose (Tg, Rg)     6    goal base joint values (object at its nominal pose)
+    goal_palm              3    goal palm position in the world (object at its nominal pose)
+    ====================  ====  =================================================================
+
+Nothing about the object's pose, geometry or mass is observed: the jitter is only felt.
+
+Action (7, in [-1, 1]): increments of the 6 base targets (scaled by ``max_translation_step`` m
+and ``max_rotation_step`` rad) and of the commanded h (by ``max_h_step``); the 24 hand joints
+follow J = h (Jg - J0) + J0. A NaN or out-of-range action raises ``ValueError``.
+
+Reward r = w + wa ra + wb rb + wc rc with ra = -|1 - h|, rb = -||p - p_g|| (palm relative to the
+*current* object position vs. its goal), rc = -||T_c - T~|| (object displacement from its
+jittered start). Success (|rc| < 0.01, |ra| < 0.05, |rb| < 0.01) adds 1000 + 1.5 (200 - step)
+and terminates; moving the object beyond ``object_tolerance`` or the palm beyond
+``palm_tolerance`` fails at once; a return below ``abort_return`` aborts; ``max_steps`` truncates.
+Failures and aborts are terminal states (``terminated=True``); only the step limit truncates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from forcegrasp.labels import GraspLabel, load_label
+from forcegrasp.objects import load_object
+from forcegrasp.scene import SceneIndex, build_model, resting_height, slide_axes
+
+OBS_LAYOUT = (
+    ("joint_torques", 24),
+    ("joint_angles", 24),
+    ("hand_pose", 6),
+    ("h", 1),
+    ("base_targets", 6),
+    ("prev_hand_pose", 6),
+    ("prev_h", 1),
+    ("goal_pose", 6),
+    ("goal_palm", 3),
+)
+ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
+
+
+def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
+    return OBS_LAYOUT if force_feedback else OBS_LAYOUT[1:]
+
+
+@dataclass(frozen=True)
+class RewardWeights:
+    w: float = 1.5
+    wa: float = 1.0
+    wb: float = 20.0
+    wc: float = 100.0
+    success_bonus: float = 1000.0
+    step_bonus: float = 1.5
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The paper's reward terms and terminal tests for one state (pure: unit-testable)."""
+
+    r_a: float
+    r_b: float
+    r_c: float
+    reward: float
+    success: bool
+    failure: str | None
+
+
+def observed_h(joint_angles: np.ndarray, goal_angles: np.ndarray, joint_range: np.ndarray) -> float:
+    """h = 1 - 0.5 max_i |j_i - j_i^g| with each difference normalised by the joint's range."""
+    return 1.0 - 0.5 * float(np.max(np.abs(joint_angles - goal_angles) / joint_range))
+
+
+def evaluate_state(
+    h: float,
+    palm_rel: np.ndarray,
+    goal_palm_rel: np.ndarray,
+    object_pos: np.ndarray,
+    object_start: np.ndarray,
+    step: int,
+    max_steps: int = 200,
+    weights: RewardWeights = RewardWeights(),
+    object_tolerance: float = 0.01,
+    palm_tolerance: float = 0.1,
+    success_tolerances: tuple[float, float, float] = (0.01, 0.05, 0.01),
+) -> Outcome:
+    """Reward terms, success and failure for a state; ``step`` counts from 1."""
+    r_a = -abs(1.0 - h)
+    r_b = -float(np.linalg.norm(palm_rel - goal_palm_rel))
+    r_c = -float(np.linalg.norm(object_pos - object_start))
+    reward = weights.w + weights.wa * r_a + weights.wb * r_b + weights.wc * r_c
+    tol_c, tol_a, tol_b = success_tolerances
+    success = -r_c < tol_c and -r_a < tol_a and -r_b < tol_b
+    failure = None
+    if success:
+        reward += weights.success_bonus + weights.step_bonus * (max_steps - step)
+    elif -r_c > object_tolerance:
+        failure = "object_moved"
+    elif -r_b > palm_tolerance:
+        failure = "palm_deviation"
+    return Outcome(r_a, r_b, r_c, reward, success, failure)
+
+
+class FunctionalGraspEnv(gym.Env):
+    """One object, one pre-grasp/goal pair, object x-y jittered by up to ``jitter`` m per reset."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 25}
+
+    def __init__(
+        self,
+        object_name: str = "mug",
+        *,
+        force_feedback: bool = True,
+        mass_scale: float = 5.0,
+        jitter: float = 0.02,
+        torque_noise_std: float = 0.0,
+        frame_skip: int = 10,
+        max_steps: int = 200,
+        object_tolerance: float = 0.01,
+        palm_tolerance: float = 0.1,
+        abort_return: float = -50.0,
+        success_tolerances: tuple[float, float, float] = (0.01, 0.05, 0.01),
+        reward_weights: RewardWeights = RewardWeights(),
+        max_translation_step: float = 0.004,
+        max_rotation_step: float = 0.02,
+        max_h_step: float = 0.025,
+        label: GraspLabel | None = None,
+        render_mode: str | None = None,
+    ):
+        for name, value in (("mass_scale", mass_scale), ("frame_skip", frame_skip), ("max_steps", max_steps)):
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be positive, got {value!r}")
+        if not (np.isfinite(jitter) and jitter >= 0) or not (np.isfinite(torque_noise_std) and torque_noise_std >= 0):
+            raise ValueError(f"jitter and torque_noise_std must be >= 0, got {jitter!r}, {torque_noise_std!r}")
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
+        self.object_spec = load_object(object_name)
+        self.label = label if label is not None else load_label(object_name)
+        self.force_feedback = bool(force_feedback)
+        self.mass_scale, self.jitter, self.torque_noise_std = float(mass_scale), float(jitter), float(torque_noise_std)
+        self.frame_skip, self.max_steps = int(frame_skip), int(max_steps)
+        self.object_tolerance, self.palm_tolerance = float(object_tolerance), float(palm_tolerance)
+        self.abort_return, self.success_tolerances = float(abort_return), tuple(success_tolerances)
+        self.weights = reward_weights
+        self.render_mode = render_mode
+
+        self.model = build_model(self.object_spec, self.mass_scale)
+        self.data = mujoco.MjData(self.model)
+        self.ix = SceneIndex.of(self.model)
+        self.slides = slide_axes(self.model)
+        self._rest_z = resting_height(self.model)
+        self._action_scale = np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
+        self._base_lo, self._base_hi = self.ix.all_range[:6, 0], self.ix.all_range[:6, 1]
+        self._hand_span = self.ix.hand_range[:, 1] - self.ix.hand_range[:, 0]
+        self._J0, self._Jg = self.label.pregrasp.hand, self.label.goal.hand
+        # Goal palm in the world with the object at its nominal pose (origin): Table I's last entry.
+        self._goal_tail = np.concatenate([self.label.goal.base, self.label.goal_palm]).astype(np.float32)
+
+        n_obs = sum(n for _, n in observation_layout(self.force_feedback))
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n_obs,), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
+        self._renderer = None
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        m, d, ix = self.model, self.data, self.ix
+        offset = (options or {}).get("offset")
+        if offset is None:
+            offset = self.np_random.uniform(-self.jitter, self.jitter, 2)
+        offset = np.asarray(offset, dtype=float)
+        if offset.shape != (2,) or not np.all(np.isfinite(offset)):
+            raise ValueError(f"options['offset'] must be 2 finite numbers (dx, dy) in m, got {offset!r}")
+        mujoco.mj_resetData(m, d)
+        d.qpos[ix.all_qpos] = self.label.pregrasp.q
+        d.qpos[ix.object_qpos : ix.object_qpos + 3] = (offset[0], offset[1], self._rest_z)
+        d.qpos[ix.object_qpos + 3 : ix.object_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
+        d.ctrl[ix.base_act] = self.label.pregrasp.base
+        d.ctrl[ix.hand_act] = self._J0
+        mujoco.mj_forward(m, d)
+        self.offset = offset
+        self.object_start = d.xpos[ix.object_body].copy()
+        self.base_target = self.label.pregrasp.base.copy()
+        self.h_command = 0.0
+        self.steps = 0
+        self.episode_return = 0.0
+        self._prev_pose = d.qpos[ix.base_qpos].copy()
+        self._prev_h = self._observed_h()
+        obs = self._observation()
+        return obs, {"offset": offset.copy(), "h": self._prev_h}
+
+    def step(self, action):
+        action = np.asarray(action, dtype=np.float64)
+        if action.shape != (7,):
+            raise ValueError(f"action must have shape (7,), got {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action}")
+        if np.any(np.abs(action) > 1.0 + 1e-6):
+            raise ValueError(f"action components must lie in [-1, 1], got {action}")
+        m, d, ix = self.model, self.data, self.ix
+        delta = action * self._action_scale
+        self._prev_pose = d.qpos[ix.base_qpos].copy()
+        self._prev_h = self._h_now
+        self.base_target = np.clip(self.base_target + delta[:6], self._base_lo, self._base_hi)
+        self.h_command = min(1.0, max(0.0, self.h_command + delta[6]))
+        d.ctrl[ix.base_act] = self.base_target
+        d.ctrl[ix.hand_act] = self.h_command * (self._Jg - self._J0) + self._J0
+        mujoco.mj_step(m, d, nstep=self.frame_skip)
+        self.steps += 1
+
+        obs = self._observation()
+        object_pos = d.xpos[ix.object_body]
+        outcome = evaluate_state(
+            self._h_now,
+            d.site_xpos[ix.palm_site] - object_pos,
+            self.label.goal_palm,
+            object_pos,
+            self.object_start,
+            self.steps,
+            self.max_steps,
+            self.weights,
+            self.object_tolerance,
+            self.palm_tolerance,
+            self.success_tolerances,
+        )
+        self.episode_return += outcome.reward
+        failure = outcome.failure
+        if failure is None and not outcome.success and self.episode_return < self.abort_return:
+            failure = "low_return"
+        terminated = outcome.success or failure is not None
+        truncated = not terminated and self.steps >= self.max_steps
+        info = {
+            "r_a": outcome.r_a,
+            "r_b": outcome.r_b,
+            "r_c": outcome.r_c,
+            "h": self._h_now,
+            "object_displacement": -outcome.r_c,
+            "palm_error": -outcome.r_b,
+            "success": outcome.success,
+            "failure": failure if failure is not None else ("time_limit" if truncated else None),
+            "step": self.steps,
+        }
+        return obs, outcome.reward, terminated, truncated, info
+
+    # ------------------------------------------------------------------ pieces
+    def _observed_h(self) -> float:
+        self._h_now = observed_h(self.data.qpos[self.ix.hand_qpos], self._Jg, self._hand_span)
+        return self._h_now
+
+    def _observation(self) -> np.ndarray:
+        d, ix = self.data, self.ix
+        h = self._observed_h()
+        parts = [
+            d.qpos[ix.hand_qpos],
+            d.qpos[ix.base_qpos],
+            (h,),
+            self.base_target,
+            self._prev_pose,
+            (self._prev_h,),
+            self._goal_tail,
+        ]
+        if self.force_feedback:
+            torques = d.actuator_force[ix.hand_act]
+            if self.torque_noise_std > 0:
+                torques = torques + self.np_random.normal(0.0, self.torque_noise_std, 24)
+            parts.insert(0, torques)
+        return np.concatenate(parts, dtype=np.float32)
+
+    def goal_base_for_offset(self, offset) -> np.ndarray:
+        """Goal base joint values for an object displaced by (dx, dy): what an oracle would aim at."""
+        shift = self.slides.T @ np.array([offset[0], offset[1], 0.0])
+        return self.label.goal.base + np.concatenate([shift, np.zeros(3)])
+
+    def render(self):
+        if self.render_mode != "rgb_array":
+            return None
+        from forcegrasp.render import look_at, make_renderer, render
+
+        if self._renderer is None:
+            self._renderer = make_renderer(self.model, 360, 480)
+        target = self.data.xpos[self.ix.object_body] + np.array([0.0, 0.0, 0.08])
+        return render(self._renderer, self.data, look_at(target, 0.55, 200.0, -25.0))
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

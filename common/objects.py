@@ -1,0 +1,205 @@
+"""Graspable objects as data: one JSON file per object under ``assets/objects/``.
+
+An object is a rigid body built from MuJoCo primitives (box, cylinder, capsule, sphere,
+ellipsoid) with one named *functional part* (trigger, handle, button) and a grasp hint that
+seeds the labelling optimiser. Adding a fifth object means adding a file, not code.
+
+File format (all lengths in metres, the object frame has z up and its origin on the table
+surface under the object)::
+
+    {
+      "name": "mug",
+      "description": "...",
+      "mass": 0.35,                        # kg at mass scale 1
+      "friction": [1.0, 0.005, 0.0001],    # optional, MuJoCo sliding/torsional/rolling
+      "geoms": [                           # at least one
+        {"name": "body", "type": "cylinder", "size": [0.04, 0.05],
+         "pos": [0, 0, 0.05], "euler": [0, 0, 0], "rgba": [0.8, 0.8, 0.8, 1]}
+      ],
+      "functional_part": ["handle_bar"],   # geom names the functional finger must touch
+      "grasp_hint": {                      # where the labelling search starts
+        "functional_finger": "ff",         # ff, mf, rf, lf or th
+        "support_fingers": ["mf", "th"],   # fingertips that should also touch the object
+        "rotation": [ARRx, ARRy, ARRz],   # base hinge angles (rad) of the start pose
+        "palm_at": [x, y, z],              # object-frame point the palm centre starts at
+        "fingers": {"FFJ2": 0.6, ...},     # optional joint start values
+        "palm_contact": false              # optional: also pull the palm onto the object
+      }
+    }
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from forcegrasp import ASSETS_DIR
+
+#: Number of size parameters per primitive type (MuJoCo's convention).
+SIZE_COUNT = {"box": 3, "cylinder": 2, "capsule": 2, "sphere": 1, "ellipsoid": 3}
+FINGERS = ("ff", "mf", "rf", "lf", "th")
+
+
+class ObjectFileError(ValueError):
+    """An object name is unknown or its file is malformed (the message names the field)."""
+
+
+@dataclass(frozen=True)
+class GeomSpec:
+    name: str
+    type: str
+    size: tuple[float, ...]
+    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rgba: tuple[float, float, float, float] = (0.7, 0.7, 0.7, 1.0)
+
+    def volume(self) -> float:
+        s = self.size
+        if self.type == "box":
+            return 8.0 * s[0] * s[1] * s[2]
+        if self.type == "cylinder":
+            return np.pi * s[0] ** 2 * 2.0 * s[1]
+        if self.type == "capsule":
+            return np.pi * s[0] ** 2 * 2.0 * s[1] + 4.0 / 3.0 * np.pi * s[0] ** 3
+        if self.type == "sphere":
+            return 4.0 / 3.0 * np.pi * s[0] ** 3
+        return 4.0 / 3.0 * np.pi * s[0] * s[1] * s[2]  # ellipsoid
+
+
+@dataclass(frozen=True)
+class GraspHint:
+    functional_finger: str
+    support_fingers: tuple[str, ...]
+    rotation: tuple[float, float, float]
+    palm_at: tuple[float, float, float]
+    fingers: dict[str, float] = field(default_factory=dict)
+    palm_contact: bool = False
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    name: str
+    description: str
+    mass: float
+    geoms: tuple[GeomSpec, ...]
+    functional_part: tuple[str, ...]
+    grasp_hint: GraspHint
+    friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
+    path: Path | None = None
+
+
+def objects_dir() -> Path:
+    return ASSETS_DIR / "objects"
+
+
+def list_objects() -> list[str]:
+    """Names of the objects that have a file under ``assets/objects``."""
+    return sorted(p.stem for p in objects_dir().glob("*.json"))
+
+
+def load_object(name: str) -> ObjectSpec:
+    """Load and validate one object by name; unknown names list the valid ones."""
+    path = objects_dir() / f"{name}.json"
+    if not name or "/" in name or "\\" in name or name.startswith(".") or not path.is_file():
+        raise ObjectFileError(f"unknown object {name!r}; valid objects: {', '.join(list_objects())}")
+    return load_object_file(path)
+
+
+def load_object_file(path: Path) -> ObjectSpec:
+    try:
+        raw = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ObjectFileError(f"{path}: not readable JSON ({exc})") from exc
+    return parse_object(raw, source=str(path), path=Path(path))
+
+
+def _field(raw: dict, key: str, source: str):
+    if not isinstance(raw, dict) or key not in raw:
+        raise ObjectFileError(f"{source}: missing field {key!r}")
+    return raw[key]
+
+
+def _floats(value, n: int | None, what: str, source: str) -> tuple[float, ...]:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ObjectFileError(f"{source}: field {what!r} must be numbers, got {value!r}") from None
+    if arr.ndim != 1 or (n is not None and arr.size != n) or not np.all(np.isfinite(arr)):
+        want = f"{n} finite numbers" if n is not None else "a list of finite numbers"
+        raise ObjectFileError(f"{source}: field {what!r} must be {want}, got {value!r}")
+    return tuple(float(v) for v in arr)
+
+
+def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) -> ObjectSpec:
+    """Validate a decoded object file; every error names the offending field."""
+    name = _field(raw, "name", source)
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ObjectFileError(f"{source}: field 'name' must be an identifier, got {name!r}")
+    mass = _field(raw, "mass", source)
+    if not isinstance(mass, (int, float)) or not np.isfinite(mass) or mass <= 0:
+        raise ObjectFileError(f"{source}: field 'mass' must be a positive number (kg), got {mass!r}")
+    geoms_raw = _field(raw, "geoms", source)
+    if not isinstance(geoms_raw, list) or not geoms_raw:
+        raise ObjectFileError(f"{source}: field 'geoms' must be a non-empty list")
+    geoms = []
+    for i, g in enumerate(geoms_raw):
+        where = f"geoms[{i}]"
+        gname = _field(g, "name", f"{source}: {where}")
+        gtype = _field(g, "type", f"{source}: {where}")
+        if gtype not in SIZE_COUNT:
+            raise ObjectFileError(
+                f"{source}: field '{where}.type' must be one of {sorted(SIZE_COUNT)}, got {gtype!r}"
+            )
+        size = _floats(_field(g, "size", f"{source}: {where}"), SIZE_COUNT[gtype], f"{where}.size", source)
+        if min(size) <= 0:
+            raise ObjectFileError(f"{source}: field '{where}.size' must be positive, got {list(size)}")
+        geoms.append(
+            GeomSpec(
+                name=str(gname),
+                type=gtype,
+                size=size,
+                pos=_floats(g.get("pos", [0, 0, 0]), 3, f"{where}.pos", source),
+                euler=_floats(g.get("euler", [0, 0, 0]), 3, f"{where}.euler", source),
+                rgba=_floats(g.get("rgba", [0.7, 0.7, 0.7, 1]), 4, f"{where}.rgba", source),
+            )
+        )
+    names = [g.name for g in geoms]
+    if len(set(names)) != len(names):
+        raise ObjectFileError(f"{source}: field 'geoms' has duplicate names {names}")
+    part = _field(raw, "functional_part", source)
+    part = (part,) if isinstance(part, str) else tuple(part) if isinstance(part, list) else None
+    if not part or any(p not in names for p in part):
+        raise ObjectFileError(
+            f"{source}: field 'functional_part' must name geoms among {names}, got {raw['functional_part']!r}"
+        )
+    hint_raw = _field(raw, "grasp_hint", source)
+    finger = _field(hint_raw, "functional_finger", f"{source}: grasp_hint")
+    support = tuple(hint_raw.get("support_fingers", []))
+    for f in (finger, *support):
+        if f not in FINGERS:
+            raise ObjectFileError(f"{source}: field 'grasp_hint' finger {f!r} not one of {FINGERS}")
+    fingers = hint_raw.get("fingers", {})
+    if not isinstance(fingers, dict):
+        raise ObjectFileError(f"{source}: field 'grasp_hint.fingers' must be a map joint -> angle")
+    hint = GraspHint(
+        functional_finger=finger,
+        support_fingers=support,
+        rotation=_floats(_field(hint_raw, "rotation", f"{source}: grasp_hint"), 3, "grasp_hint.rotation", source),
+        palm_at=_floats(_field(hint_raw, "palm_at", f"{source}: grasp_hint"), 3, "grasp_hint.palm_at", source),
+        fingers={str(k): float(v) for k, v in fingers.items()},
+        palm_contact=bool(hint_raw.get("palm_contact", False)),
+    )
+    friction = _floats(raw.get("friction", [1.0, 0.005, 0.0001]), 3, "friction", source)
+    return ObjectSpec(
+        name=name,
+        description=str(raw.get("description", "")),
+        mass=float(mass),
+        geoms=tuple(geoms),
+        functional_part=part,
+        grasp_hint=hint,
+        friction=friction,
+        path=path,
+    )
