@@ -8,8 +8,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 __version__ = "0.1.0"
 
-#: Repository asset folder (objects, grasp labels). Overridable for installed copies.
-ASSETS_DIR = Path(__file__).resolve().parent.parent / "assets"
+#: Asset folder (objects, grasp labels): the repository's, or FORCEGRASP_ASSETS for a user's own set.
+ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve().parent.parent / "assets")
 
 
 def _register_envs() -> None:

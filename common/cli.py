@@ -38,10 +38,29 @@ def cmd_label(args) -> int:
     if not ok:
         print("checks failed: label not written", file=sys.stderr)
         return 1
-    from forcegrasp.labels import save_label
 
     path = save_label(label, args.out)
     print(f"wrote {path}")
+    picture = _save_grasp_picture(obj.name, label)
+    print(f"wrote {picture} (top row: pre-grasp G0, bottom row: goal grasp Gg)")
+    return 0
+
+
+def _save_grasp_picture(name: str, label=None):
+    from forcegrasp import ASSETS_DIR
+    from forcegrasp.render import grasp_picture, save_png
+
+    path = ASSETS_DIR.parent / "docs" / "grasps" / f"{name}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_png(path, grasp_picture(name, label))
+    return path
+
+
+def cmd_picture(args) -> int:
+    from forcegrasp.objects import list_objects
+
+    for name in args.objects or list_objects():
+        print(f"wrote {_save_grasp_picture(name)}")
     return 0
 
 
@@ -64,6 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="label path (default assets/labels/OBJECT.json)")
     p.add_argument("--dry-run", action="store_true", help="run and check, write nothing")
     p.set_defaults(func=cmd_label)
+
+    p = sub.add_parser("picture", help="render the labelled grasps of objects to docs/grasps/")
+    p.add_argument("objects", nargs="*", help="object names (default: all)")
+    p.set_defaults(func=cmd_picture)
 
     p = sub.add_parser("objects", help="list the objects")
     p.set_defaults(func=cmd_objects)

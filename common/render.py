@@ -33,3 +33,26 @@ def save_png(path, image: np.ndarray) -> None:
     from PIL import Image
 
     Image.fromarray(image).save(path)
+
+
+def grasp_picture(object_name: str, label=None, height: int = 300, width: int = 400) -> np.ndarray:
+    """Pre-grasp and goal grasp side by side, each from the approach side and from above."""
+    from forcegrasp.labels import load_label
+    from forcegrasp.objects import load_object
+    from forcegrasp.scene import SceneIndex, build_model, resting_height
+
+    label = label if label is not None else load_label(object_name)
+    m = build_model(load_object(object_name))
+    d = mujoco.MjData(m)
+    ix = SceneIndex.of(m)
+    renderer = make_renderer(m, height, width)
+    rows = []
+    for grasp in (label.pregrasp, label.goal):
+        d.qpos[ix.all_qpos] = grasp.q
+        d.qpos[ix.object_qpos + 2] = resting_height(m)
+        d.qpos[ix.object_qpos + 3] = 1.0
+        mujoco.mj_forward(m, d)
+        views = [look_at([0, 0, 0.09], 0.5, az, el) for az, el in ((200, -20), (135, -35), (270, -70))]
+        rows.append(np.concatenate([render(renderer, d, cam) for cam in views], axis=1))
+    renderer.close()
+    return np.concatenate(rows, axis=0)
