@@ -72,6 +72,25 @@ def cmd_objects(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    from forcegrasp.objects import ObjectFileError, load_object
+    from forcegrasp.train import Trainer, config_from_args
+
+    try:
+        load_object(args.object)
+    except ObjectFileError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    trainer = Trainer(config_from_args(args), log=lambda msg: print(msg, flush=True))
+    try:
+        trainer.run(args.steps)
+    except KeyboardInterrupt:
+        print(f"interrupted at step {trainer.step}; resume from the last checkpoint with the same command")
+        return 130
+    print(f"done: policy at {trainer.dir / 'policy.safetensors'}, curve at {trainer.dir / 'curve.png'}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="forcegrasp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -83,6 +102,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="label path (default assets/labels/OBJECT.json)")
     p.add_argument("--dry-run", action="store_true", help="run and check, write nothing")
     p.set_defaults(func=cmd_label)
+
+    p = sub.add_parser("train", help="train SAC on one object in this process (resumable)")
+    p.add_argument("object", nargs="?", default="mug")
+    p.add_argument("--steps", type=int, default=1_000_000, help="total environment steps (paper: 1M)")
+    p.add_argument("--run-dir", default=None, help="default runs/OBJECT; an existing run resumes")
+    p.add_argument("--no-force-feedback", action="store_true", help="the paper's ablation: no joint torques")
+    p.add_argument("--mass-scale", type=float, default=5.0)
+    p.add_argument("--learning-starts", type=int, default=1000)
+    p.add_argument("--batch-size", type=int, default=256)
+    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256])
+    p.add_argument("--checkpoint-every", type=int, default=2000)
+    p.add_argument("--eval-episodes", type=int, default=10)
+    p.add_argument("--log-every", type=int, default=500)
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("picture", help="render the labelled grasps of objects to docs/grasps/")
     p.add_argument("objects", nargs="*", help="object names (default: all)")

@@ -1,0 +1,91 @@
+"""Env steps/s against raw ``mj_step`` throughput of the same model and frame skip, one core.
+
+The raw loop replays the very control sequence the env produced (random policy, resets
+included) with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)``, so both sides
+simulate the same contacts and the ratio isolates the env's own Python overhead.
+Repetitions alternate env and raw runs so machine noise hits both alike.
+
+    python bench/bench_env.py --object mug --steps 3000 --reps 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import mujoco
+import numpy as np
+
+from forcegrasp.env import FunctionalGraspEnv
+
+
+def run_env(env: FunctionalGraspEnv, actions: np.ndarray, seed: int):
+    """Step the env through ``actions`` (resetting at episode ends); returns seconds and resets."""
+    starts = []
+    env.reset(seed=seed)
+    starts.append((0, env.data.qpos.copy(), env.data.ctrl.copy()))
+    t0 = time.perf_counter()
+    for k, a in enumerate(actions):
+        _, _, term, trunc, _ = env.step(a)
+        if term or trunc:
+            env.reset()
+            starts.append((k + 1, env.data.qpos.copy(), env.data.ctrl.copy()))
+    elapsed = time.perf_counter() - t0
+    return elapsed, starts
+
+
+def record_ctrls(env: FunctionalGraspEnv, actions: np.ndarray, seed: int) -> tuple[np.ndarray, list]:
+    ctrls, starts = [], []
+    env.reset(seed=seed)
+    starts.append((0, env.data.qpos.copy()))
+    for k, a in enumerate(actions):
+        _, _, term, trunc, _ = env.step(a)
+        ctrls.append(env.data.ctrl.copy())
+        if term or trunc:
+            env.reset()
+            starts.append((k + 1, env.data.qpos.copy()))
+    return np.array(ctrls), starts
+
+
+def run_raw(m: mujoco.MjModel, ctrls: np.ndarray, starts: list, frame_skip: int) -> float:
+    d = mujoco.MjData(m)
+    resets = dict((k, q) for k, q in starts)
+    t0 = time.perf_counter()
+    for k in range(len(ctrls)):
+        q = resets.get(k)
+        if q is not None:
+            d.qpos[:] = q
+            d.qvel[:] = 0
+        d.ctrl[:] = ctrls[k]
+        mujoco.mj_step(m, d, nstep=frame_skip)
+    return time.perf_counter() - t0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--object", default="mug")
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--reps", type=int, default=3)
+    args = parser.parse_args()
+
+    env = FunctionalGraspEnv(args.object)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, (args.steps, 7)).astype(np.float32)
+    ctrls, starts = record_ctrls(env, actions, seed=0)
+    print(f"{args.object}: {args.steps} steps x {args.reps} reps, frame_skip {env.frame_skip}, "
+          f"{len(starts)} episodes per run")
+    env_rates, raw_rates = [], []
+    for rep in range(args.reps):
+        t_env, _ = run_env(env, actions, seed=0)
+        t_raw = run_raw(env.model, ctrls, starts, env.frame_skip)
+        env_rates.append(args.steps / t_env)
+        raw_rates.append(args.steps / t_raw)
+        print(f"  rep {rep + 1}/{args.reps}: env {env_rates[-1]:7.0f} steps/s   raw mj_step {raw_rates[-1]:7.0f} steps/s"
+              f"   ratio {env_rates[-1] / raw_rates[-1]:.1%}", flush=True)
+    e, r = np.median(env_rates), np.median(raw_rates)
+    print(f"median: env {e:.0f} steps/s, raw {r:.0f} steps/s ({r * env.frame_skip:.0f} physics steps/s), "
+          f"env runs at {e / r:.1%} of the raw physics rate")
+
+
+if __name__ == "__main__":
+    main()
