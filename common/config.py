@@ -1,0 +1,422 @@
+"""One configuration for every ForceGrasp service: TOML file, then environment, then flags.
+
+All services (learner, actors, evaluator, launcher) read the same :class:`Config`, so a run is
+described in one place.  Values come from, in increasing precedence:
+
+1. the dataclass defaults below (printed by :func:`default_config_toml`, also ``configs/default.toml``);
+2. a TOML file (``--config PATH`` or ``FORCEGRASP_CONFIG``);
+3. environment variables ``FORCEGRASP_<SECTION>_<KEY>`` (e.g. ``FORCEGRASP_ACTOR_ENVS_PER_ACTOR=4``;
+   ``FORCEGRASP_LEARNER_SAC_BATCH_SIZE=128`` for an entry of ``[learner.sac]``);
+4. command-line ``--set section.key=value`` (e.g. ``--set learner.sac.gamma=0.98``).
+
+String values (environment, flags) are coerced to the field's type; anything unknown or of the
+wrong type raises :class:`ConfigError` naming the key.  SAC hyper-parameters are owned by
+``forcegrasp.sac.SACConfig``: ``[learner.sac]`` only carries overrides, validated there.
+Environment variables whose section is not one of ours (e.g. ``FORCEGRASP_ASSETS``) are ignored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+ENV_PREFIX = "FORCEGRASP_"
+CONFIG_FILE_ENV = "FORCEGRASP_CONFIG"
+
+
+class ConfigError(ValueError):
+    """A configuration value or key is wrong; the message names the key and its source."""
+
+
+def _f(default: Any, help: str, *, min: float | None = None, choices: Sequence[str] | None = None):
+    """Dataclass field carrying its documentation and simple bounds (used for checks and the TOML)."""
+    meta = {"help": help, "min": min, "choices": tuple(choices) if choices else None}
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass
+class RunConfig:
+    """Naming and output of one training run."""
+
+    name: str = _f("default", "run name: Zenoh keys forcegrasp/<name>/... and the output folder")
+    output_dir: str = _f("runs", "checkpoints, replay snapshots, logs go to <output_dir>/<name>/")
+    seed: int = _f(0, "base seed; actor i uses seed + 1000 * (i + 1)", min=0)
+
+
+@dataclass
+class EnvConfig:
+    """The FunctionalGrasp environment every actor and the evaluator build."""
+
+    object: str = _f("mug", "object name (a file under assets/objects/)")
+    force_feedback: bool = _f(True, "observe joint torques (false: the paper's ablation, 53-dim obs)")
+    mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
+    jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
+    torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
+    max_steps: int = _f(200, "episode length limit", min=1)
+
+
+@dataclass
+class ActorConfig:
+    """Actor processes: envs, exploration, publishing."""
+
+    num_actors: int = _f(2, "actor processes started by 'forcegrasp up'", min=0)
+    envs_per_actor: int = _f(8, "environments stepped together in one actor process", min=1)
+    random_steps: int = _f(1000, "uniformly random actions for this many env steps per actor", min=0)
+    publish_batch: int = _f(64, "transitions per published TransitionBatch", min=1)
+    max_buffered_batches: int = _f(2000, "batches kept while the learner is away (oldest dropped)", min=1)
+    weights_poll_s: float = _f(0.0, "extra wait for new weights between steps (0: never wait)", min=0.0)
+
+
+@dataclass
+class NetworkConfig:
+    """Zenoh endpoints.  The learner listens; every other service connects to it."""
+
+    mode: str = _f("peer", "Zenoh mode; peer survives any start order", choices=("peer", "client", "router"))
+    learner_listen: list[str] = _f(["tcp/127.0.0.1:7447"], "endpoints the learner listens on")
+    connect: list[str] = _f([], "endpoints other services connect to (empty: learner_listen)")
+    listen: list[str] = _f(["tcp/127.0.0.1:0"], "endpoints other services listen on (port 0: any), so peers mesh")
+    lease_ms: int = _f(3000, "Zenoh lease: a hung (not killed) peer counts as gone after this", min=100)
+    zenoh_config: str = _f("", "optional Zenoh JSON5 file applied first (TLS, access control)")
+
+    def connect_endpoints(self) -> list[str]:
+        """Where non-learner services connect: ``connect`` or the learner's listen endpoints.
+
+        A learner listening on every interface (0.0.0.0 / [::]) is reached through loopback.
+        """
+        if self.connect:
+            return list(self.connect)
+        return [e.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:") for e in self.learner_listen]
+
+    def endpoints_for(self, service: str) -> tuple[list[str], list[str]]:
+        """``(listen, connect)`` for a service: the learner listens, the others connect."""
+        if service == "learner":
+            return list(self.learner_listen), []
+        return list(self.listen), self.connect_endpoints()
+
+
+@dataclass
+class LearnerConfig:
+    """Learner service knobs; SAC hyper-parameters go in [learner.sac] (see forcegrasp.sac.SACConfig)."""
+
+    broadcast_every: int = _f(100, "gradient updates between weight broadcasts", min=1)
+    checkpoint_every: int = _f(10000, "environment steps (transitions ingested) between checkpoints", min=1)
+    snapshot_replay: bool = _f(True, "save the replay buffer with checkpoints, so a restart resumes it")
+    ingest_queue: int = _f(1024, "received batches waiting to be decoded (the Zenoh callback's queue)", min=1)
+    stats_every_s: float = _f(2.0, "seconds between stats messages and TensorBoard scalars", min=0.1)
+    max_payload_mb: int = _f(64, "messages larger than this are rejected unread", min=1)
+    sac: dict[str, Any] = _f({}, "overrides of forcegrasp.sac.SACConfig fields, e.g. batch_size = 256")
+
+
+@dataclass
+class EvaluatorConfig:
+    """Evaluator service: periodic evaluation, top-k checkpoints, final ranking, HTTP view."""
+
+    eval_every: int = _f(2000, "environment steps between evaluations", min=1)
+    eval_episodes: int = _f(10, "episodes per periodic evaluation", min=1)
+    top_k: int = _f(5, "best checkpoints kept", min=1)
+    final_rank_episodes: int = _f(100, "episodes per top-k checkpoint in the final ranking", min=1)
+    http_host: str = _f("127.0.0.1", "address of the evaluator's HTTP page")
+    http_port: int = _f(8080, "port of the evaluator's HTTP page (0: any free port)", min=0)
+
+
+@dataclass
+class Config:
+    """Every section, in file order."""
+
+    run: RunConfig = field(default_factory=RunConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    actor: ActorConfig = field(default_factory=ActorConfig)
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    evaluator: EvaluatorConfig = field(default_factory=EvaluatorConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+    def to_toml(self) -> str:
+        """The resolved configuration, e.g. to record next to a run's checkpoints."""
+        return _emit_toml(self, comments=False)
+
+
+SECTIONS: dict[str, type] = {f.name: f.default_factory for f in dataclasses.fields(Config)}  # type: ignore[misc]
+
+
+# --------------------------------------------------------------------------------------------
+# Loading
+# --------------------------------------------------------------------------------------------
+
+def load_config(path: str | os.PathLike | None = None, *, env: Mapping[str, str] | None = None,
+                overrides: Iterable[str] = ()) -> Config:
+    """Defaults, then the TOML file, then ``FORCEGRASP_*`` variables, then ``section.key=value`` overrides.
+
+    ``env`` defaults to ``os.environ``; ``path`` defaults to ``$FORCEGRASP_CONFIG`` if set.
+    """
+    env = os.environ if env is None else env
+    path = path if path is not None else (env.get(CONFIG_FILE_ENV) or None)
+    config = Config()
+    if path is not None:
+        _apply_file(config, Path(path))
+    for name, value in sorted(env.items()):
+        target = _env_target(name)
+        if target is not None:
+            _set(config, *target, value, source=f"environment variable {name}")
+    for item in overrides:
+        section, key, value = _split_override(item)
+        _set(config, section, key, value, source=f"--set {item}")
+    _check_cross_fields(config)
+    return config
+
+
+def _apply_file(config: Config, path: Path) -> None:
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    for section, table in data.items():
+        if section not in SECTIONS:
+            raise ConfigError(f"{path}: unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(table, dict):
+            raise ConfigError(f"{path}: {section} must be a table [{section}]")
+        for key, value in table.items():
+            _set(config, section, key, value, source=str(path))
+
+
+def _env_target(name: str) -> tuple[str, str] | None:
+    """``FORCEGRASP_ACTOR_ENVS_PER_ACTOR`` -> ("actor", "envs_per_actor"); None if not ours."""
+    if not name.startswith(ENV_PREFIX) or name == CONFIG_FILE_ENV:
+        return None
+    section, _, key = name[len(ENV_PREFIX):].lower().partition("_")
+    if section not in SECTIONS:
+        return None
+    if not key:
+        raise ConfigError(f"environment variable {name}: missing key after the section")
+    for fname, ftype in _types(section).items():  # FORCEGRASP_LEARNER_SAC_GAMMA: a dict entry
+        if typing.get_origin(ftype) is dict and key.startswith(fname + "_"):
+            return section, f"{fname}.{key[len(fname) + 1:]}"
+    return section, key
+
+
+def _split_override(item: str) -> tuple[str, str, str]:
+    """``"learner.sac.gamma=0.98"`` -> ("learner", "sac.gamma", "0.98")."""
+    dotted, sep, value = item.partition("=")
+    section, dot, key = dotted.strip().partition(".")
+    if not sep or not dot or not key:
+        raise ConfigError(f"--set {item!r}: expected section.key=value")
+    if section not in SECTIONS:
+        raise ConfigError(f"--set {item!r}: unknown section {section!r} (known: {', '.join(SECTIONS)})")
+    return section, key, value.strip()
+
+
+def _fields(section: str) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in dataclasses.fields(SECTIONS[section])}
+
+
+def _types(section: str) -> dict[str, Any]:
+    return typing.get_type_hints(SECTIONS[section])
+
+
+def _set(config: Config, section: str, key: str, value: Any, *, source: str) -> None:
+    """Set ``section.key`` (``key`` may be ``dictfield.entry``) after coercion and checks."""
+    table = getattr(config, section)
+    name, _, entry = key.partition(".")
+    fields = _fields(section)
+    full = f"{section}.{key}"
+    if name not in fields:
+        raise ConfigError(f"{source}: unknown key {full!r} (known in [{section}]: {', '.join(fields)})")
+    ftype = _types(section)[name]
+    if typing.get_origin(ftype) is dict:
+        _set_dict(table, name, entry, value, full, source)
+        return
+    if entry:
+        raise ConfigError(f"{source}: {section}.{name} is not a table, cannot set {full!r}")
+    coerced = _coerce(value, ftype, full, source)
+    _check_bounds(fields[name], coerced, full, source)
+    setattr(table, name, coerced)
+
+
+def _set_dict(table: Any, name: str, entry: str, value: Any, full: str, source: str) -> None:
+    """Dict fields (``learner.sac``) take a whole table from TOML or one entry per env/flag."""
+    current = getattr(table, name)
+    if not entry:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: {full} must be a table")
+        current.update(value)
+        return
+    if not entry.isidentifier():
+        raise ConfigError(f"{source}: {full!r} is not a valid entry name")
+    current[entry] = _parse_literal(value) if isinstance(value, str) else value
+
+
+def _parse_literal(text: str) -> Any:
+    """A TOML literal (``3e-4``, ``true``, ``[256, 256]``) or, failing that, the plain string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+_TRUE = {"1", "true", "yes", "on"}
+_FALSE = {"0", "false", "no", "off"}
+
+
+def _coerce(value: Any, ftype: Any, key: str, source: str) -> Any:
+    """Typed value for a field: strings are parsed, TOML values must already have the type."""
+
+    def bad(why: str = "") -> ConfigError:
+        want = getattr(ftype, "__name__", str(ftype))
+        return ConfigError(f"{source}: {key} = {value!r} is not a valid {want}{why}")
+
+    if typing.get_origin(ftype) is list:
+        items = _split_list(value) if isinstance(value, str) else value
+        if not isinstance(items, list) or not all(isinstance(i, str) for i in items):
+            raise bad(" (a list of strings)")
+        return [i.strip() for i in items]
+    if ftype is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
+            return value.strip().lower() in _TRUE
+        raise bad(" (true/false)")
+    if ftype is int:
+        if isinstance(value, str):
+            try:
+                return int(value.strip().replace("_", ""))
+            except ValueError:
+                raise bad() from None
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise bad()
+    if ftype is float:
+        if isinstance(value, str):
+            try:
+                value = float(value.strip())
+            except ValueError:
+                raise bad() from None
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+            return float(value)
+        raise bad(" (a finite number)")
+    if ftype is str:
+        if isinstance(value, str):
+            return value
+        raise bad()
+    raise ConfigError(f"{key}: unsupported field type {ftype!r}")  # a bug in this module
+
+
+def _split_list(text: str) -> list[str]:
+    """``"a,b"`` or a TOML array ``'["a", "b"]'``; an empty string is an empty list."""
+    text = text.strip()
+    if text.startswith("["):
+        parsed = _parse_literal(text)
+        return parsed if isinstance(parsed, list) else [text]
+    return [part for part in text.split(",") if part.strip()]
+
+
+def _check_bounds(f: dataclasses.Field, value: Any, key: str, source: str) -> None:
+    low, choices = f.metadata.get("min"), f.metadata.get("choices")
+    if low is not None and value < low:
+        raise ConfigError(f"{source}: {key} = {value!r} must be >= {low}")
+    if choices and value not in choices:
+        raise ConfigError(f"{source}: {key} = {value!r} must be one of {', '.join(choices)}")
+
+
+def _check_cross_fields(config: Config) -> None:
+    """Rules involving more than one value, or the protocol's naming rules."""
+    from forcegrasp.protocol import ProtocolError, validate_name
+
+    try:
+        validate_name(config.run.name, "run name")
+    except ProtocolError as exc:
+        raise ConfigError(f"run.name: {exc.detail}") from None
+    if not config.network.learner_listen:
+        raise ConfigError("network.learner_listen: at least one endpoint is needed")
+    for key in ("learner_listen", "connect", "listen"):
+        for endpoint in getattr(config.network, key):
+            if "/" not in endpoint:
+                raise ConfigError(f"network.{key}: {endpoint!r} is not an endpoint like tcp/127.0.0.1:7447")
+
+
+# --------------------------------------------------------------------------------------------
+# TOML output
+# --------------------------------------------------------------------------------------------
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # JSON string escapes are valid TOML basic strings
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
+
+
+def _emit_toml(config: Config, *, comments: bool) -> str:
+    lines: list[str] = []
+    for section in SECTIONS:
+        table = getattr(config, section)
+        if comments:
+            lines.append(f"# {type(table).__doc__.strip().splitlines()[0]}")
+        lines.append(f"[{section}]")
+        nested = []
+        for f in dataclasses.fields(table):
+            value = getattr(table, f.name)
+            if isinstance(value, dict):
+                nested.append((f, value))
+                continue
+            if comments:
+                lines.append(f"# {f.metadata['help']}")
+            lines.append(f"{f.name} = {_toml_value(value)}")
+        for f, value in nested:
+            lines.append("")
+            if comments:
+                lines.append(f"# {f.metadata['help']}")
+            lines.append(f"[{section}.{f.name}]")
+            if comments and not value and section == "learner":
+                lines.extend(_SAC_EXAMPLE)
+            lines.extend(f"{k} = {_toml_value(v)}" for k, v in value.items())
+        lines.append("")
+    return "\n".join(lines)
+
+
+_SAC_EXAMPLE = [
+    "# updates_per_step = 1.0   # update-to-data ratio",
+    "# batch_size = 256",
+    "# learning_starts = 1000",
+    "# gamma = 0.99",
+]
+
+
+def default_config_toml() -> str:
+    """The defaults as a commented TOML file (what ``configs/default.toml`` contains)."""
+    header = ("# ForceGrasp configuration: shared by the learner, the actors and the evaluator.\n"
+              "# Override any key with FORCEGRASP_<SECTION>_<KEY>=value or --set section.key=value.\n\n")
+    return header + _emit_toml(Config(), comments=True)
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+# --------------------------------------------------------------------------------------------
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config PATH`` and repeatable ``--set section.key=value`` for any sub-command."""
+    parser.add_argument("--config", metavar="PATH", default=None,
+                        help=f"TOML configuration file (default: ${CONFIG_FILE_ENV} or built-in defaults)")
+    parser.add_argument("--set", dest="overrides", metavar="SECTION.KEY=VALUE", action="append", default=[],
+                        help="override one configuration value (repeatable)")
+
+
+def config_from_args(args: argparse.Namespace, env: Mapping[str, str] | None = None) -> Config:
+    return load_config(getattr(args, "config", None), env=env, overrides=getattr(args, "overrides", []) or [])
