@@ -137,6 +137,22 @@ def declare_publisher(session: zenoh.Session, key: str, *, express: bool = False
     )
 
 
+def has_subscribers(publisher: zenoh.Publisher) -> bool:
+    """Whether any subscriber matches: an actor keeps batches buffered while this is False."""
+    status = publisher.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float = 10.0, poll_s: float = 0.01) -> bool:
+    """Poll until a subscriber matches ``publisher`` (declarations need a moment to propagate)."""
+    deadline = time.monotonic() + timeout
+    while not has_subscribers(publisher):
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
 class QueueSubscriber:
     """Subscriber whose callback only copies the payload into a bounded ``queue.Queue``.
 
