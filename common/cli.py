@@ -118,6 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_train)
 
+    for name, (_, help_text) in SERVICES.items():
+        sub.add_parser(name, help=help_text + " (see forcegrasp %s --help)" % name, add_help=False)
+
     p = sub.add_parser("picture", help="render the labelled grasps of objects to docs/grasps/")
     p.add_argument("objects", nargs="*", help="object names (default: all)")
     p.set_defaults(func=cmd_picture)
@@ -127,7 +130,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Sub-commands that own their whole argument list (they take the shared --config/--set options).
+SERVICES = {
+    "up": ("forcegrasp.launcher", "start learner, actors and evaluator as local processes on loopback"),
+    "learner": ("forcegrasp.services.learner.learner", "run the SAC learner service"),
+    "actor": ("forcegrasp.services.actor.actor", "run one actor service (point it at a learner with --set)"),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in SERVICES:
+        import importlib
+
+        from forcegrasp.config import ConfigError
+        from forcegrasp.objects import ObjectFileError
+
+        try:
+            return int(importlib.import_module(SERVICES[argv[0]][0]).main(argv[1:]) or 0)
+        except (ConfigError, ObjectFileError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     args = build_parser().parse_args(argv)
     return int(args.func(args) or 0)
 

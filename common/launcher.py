@@ -1,0 +1,125 @@
+"""``forcegrasp up``: the whole cluster as local processes on loopback, with live progress.
+
+Starts the learner, ``actor.num_actors`` actors (and the evaluator once it exists) from one
+resolved configuration file, prints one progress line every few seconds from the services' own
+stats messages, restarts a service that dies, and on Ctrl-C (or SIGTERM) stops them all:
+SIGINT first so the learner writes its checkpoint, SIGKILL after a grace period.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from forcegrasp.config import add_config_arguments, config_from_args
+from forcegrasp.protocol import Keys, ProtocolError, decode_stats
+from forcegrasp.runtime import open_service_session
+from forcegrasp.transport import QueueSubscriber, close_session
+
+GRACE_S = 20.0
+
+
+def service_commands(config_path: Path, num_actors: int) -> dict[str, list[str]]:
+    py = [sys.executable, "-m"]
+    commands = {"learner": py + ["forcegrasp.services.learner", "--config", str(config_path)]}
+    for i in range(num_actors):
+        commands[f"actor-{i}"] = py + ["forcegrasp.services.actor", "--config", str(config_path), "--id", f"actor-{i}",
+                                       "--seed", str(1000 * (i + 1))]
+    return commands
+
+
+def progress_line(stats: dict) -> str:
+    learner = stats.get("learner")
+    if learner is None:
+        return "waiting for the learner..."
+    ret = learner.get("return_mean")
+    succ = learner.get("success_rate")
+    actors = [f"{k}: v{v.get('policy_version', 0)} {v.get('steps_per_s', 0):.0f} st/s" for k, v in sorted(stats.items()) if k != "learner"]
+    return (f"steps {learner['ingested']:>9}  updates {learner['updates']:>8} ({learner['updates_per_s']:.0f}/s)  "
+            f"v{learner['policy_version']}  return(100) {'-' if ret is None else f'{ret:.1f}'}  "
+            f"success {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | " + "  ".join(actors))
+
+
+def stop_all(procs: dict[str, subprocess.Popen], log=print, grace_s: float = GRACE_S) -> None:
+    """SIGINT to every live service, then SIGKILL whatever has not exited after ``grace_s``."""
+    for p in procs.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + grace_s
+    for name, p in procs.items():
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            log(f"{name} did not stop in {grace_s:.0f} s: SIGKILL")
+            p.kill()
+            p.wait()
+
+
+def up(config, config_path: Path, stop_after: float | None = None, log=print) -> int:
+    run_dir = Path(config.run.output_dir) / config.run.name
+    run_dir.mkdir(parents=True, exist_ok=True)
+    config_path.write_text(config.to_toml())
+    logs = run_dir / "logs"
+    logs.mkdir(exist_ok=True)
+    commands = service_commands(config_path, config.actor.num_actors)
+    procs: dict[str, subprocess.Popen] = {}
+
+    def start(name: str) -> None:
+        out = open(logs / f"{name}.log", "ab")
+        procs[name] = subprocess.Popen(commands[name], stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+
+    stopping = {"flag": False}
+
+    def on_signal(signum, frame):
+        stopping["flag"] = True
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    session = stats_sub = None
+    try:
+        for name in commands:
+            start(name)
+            if name == "learner":
+                time.sleep(0.5)  # actors connect faster when the learner already listens
+        log(f"started {', '.join(f'{n} (pid {p.pid})' for n, p in procs.items())}; logs in {logs}; Ctrl-C stops")
+        session = open_service_session(config, "monitor")
+        stats_sub = QueueSubscriber(session, Keys(config.run.name).all_stats, maxsize=256, put_timeout=0.0)
+        latest: dict[str, dict] = {}
+        t0 = last_line = time.monotonic()
+        while not stopping["flag"] and (stop_after is None or time.monotonic() - t0 < stop_after):
+            payload = stats_sub.get(timeout=0.2)
+            if payload is not None:
+                try:
+                    s = decode_stats(payload)
+                    latest["learner" if s.service == "learner" else s.id] = s.values
+                except ProtocolError:
+                    pass
+            for name, p in list(procs.items()):
+                if p.poll() is not None:
+                    log(f"{name} exited with {p.returncode}; restarting it (see {logs / (name + '.log')})")
+                    start(name)
+            if time.monotonic() - last_line > 3.0:
+                log(progress_line(latest))
+                last_line = time.monotonic()
+    finally:
+        if stats_sub is not None:
+            stats_sub.close()
+        close_session(session)
+        log("stopping: SIGINT to every service, the learner writes its checkpoint")
+        stop_all(procs, log)
+    log("all services stopped")
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="forcegrasp up", description=__doc__.splitlines()[0])
+    add_config_arguments(parser)
+    parser.add_argument("--stop-after", type=float, default=None, help="stop the cluster after this many seconds")
+    args = parser.parse_args(argv)
+    config = config_from_args(args)
+    path = Path(config.run.output_dir) / config.run.name / "cluster.toml"
+    return up(config, path, args.stop_after)

@@ -1,0 +1,3 @@
+from forcegrasp.services.actor.actor import main
+
+raise SystemExit(main())

@@ -1,0 +1,3 @@
+from forcegrasp.services.learner.learner import main
+
+raise SystemExit(main())

@@ -1,0 +1,312 @@
+"""Learner service: ingests actors' transitions from Zenoh into the replay buffer, trains SAC at
+the configured update-to-data ratio, broadcasts policy weights, checkpoints, and resumes.
+
+Zenoh's receive path only copies payloads into a bounded queue (a full queue pushes back on the
+actors' blocking publishers); decoding, validation and training happen in this loop. Every bad
+message is logged (the first few of each kind), counted by reason and dropped.
+
+Files in ``<output_dir>/<run>/``: ``checkpoint.safetensors`` (learner state, written last, marks
+a complete checkpoint), ``replay.npz``, ``policy.safetensors`` and ``checkpoints/policy-<step>``
+files for the evaluator, ``tb/`` TensorBoard scalars, ``config.toml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import dataclasses
+import logging
+import queue
+import time
+from pathlib import Path
+
+import numpy as np
+
+from forcegrasp.config import Config, ConfigError, add_config_arguments, config_from_args
+from forcegrasp.policy import weights_of
+from forcegrasp.protocol import (
+    Checkpoint,
+    Keys,
+    Limits,
+    ProtocolError,
+    RejectCounter,
+    Stats,
+    Weights,
+    decode_transitions,
+    encode_checkpoint,
+    encode_stats,
+    encode_weights,
+)
+from forcegrasp.replay import ReplayBuffer
+from forcegrasp.runtime import open_service_session, policy_metadata, stop_on_signals
+from forcegrasp.sac import SAC, SACConfig
+from forcegrasp.transport import (
+    QueueSubscriber,
+    close_session,
+    declare_publisher,
+    declare_queryable,
+    declare_token,
+)
+
+log = logging.getLogger("forcegrasp.learner")
+ACT_DIM = 7
+MAX_UPDATES_PER_LOOP = 8  # then look at the network again, so ingestion never starves
+MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
+
+
+def sac_config(config: Config) -> SACConfig:
+    """SACConfig with the [learner.sac] overrides; unknown or ill-typed keys are a ConfigError."""
+    known = {f.name: f for f in dataclasses.fields(SACConfig)}
+    overrides = {}
+    for key, value in config.learner.sac.items():
+        if key not in known:
+            raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
+        overrides[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        return dataclasses.replace(SACConfig(seed=config.run.seed), **overrides)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"learner.sac: {exc}") from None
+
+
+@dataclasses.dataclass
+class ActorTrack:
+    """What the learner knows about one actor's stream."""
+
+    last_seq: int = -1
+    ingested: int = 0
+    gaps: int = 0
+    out_of_order: int = 0
+    staleness_sum: float = 0.0
+    batches: int = 0
+    rate_mark: tuple[float, int] = (0.0, 0)
+
+
+class LearnerService:
+    def __init__(self, config: Config):
+        self.config = config
+        self.keys = Keys(config.run.name)
+        self.dir = Path(config.run.output_dir) / config.run.name
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.sac_cfg = sac_config(config)
+        self.obs_dim = 77 if config.env.force_feedback else 53
+        self.limits = Limits(max_payload_bytes=config.learner.max_payload_mb * 2**20)
+        self.rejects = RejectCounter()
+        self.actors: dict[str, ActorTrack] = collections.defaultdict(ActorTrack)
+        self.recent_episodes: collections.deque = collections.deque(maxlen=100)
+        self.ingested = 0
+        self.policy_version = 0
+        self.latest_weights: bytes | None = None
+        self.writer = None  # TensorBoard, opened by run()
+        self.inbox = None
+        self.episode_count = 0
+        self._updates_due = 0.0
+        self._last_checkpoint = 0
+        self._resume_or_start()
+
+    # ------------------------------------------------------------------ state
+    def _resume_or_start(self) -> None:
+        ckpt = self.dir / "checkpoint.safetensors"
+        if ckpt.exists():
+            self.sac, extra = SAC.load_checkpoint(ckpt)
+            self.buffer = ReplayBuffer.load(self.dir / "replay.npz", capacity=self.sac_cfg.buffer_size)
+            self.ingested = int(extra["ingested"])
+            self.policy_version = int(extra["policy_version"])
+            self._last_checkpoint = self.ingested
+            log.info("resumed from %s: %d transitions ingested, %d updates, %d in replay",
+                     ckpt, self.ingested, self.sac.num_updates, len(self.buffer))
+        else:
+            self.sac = SAC(self.obs_dim, ACT_DIM, self.sac_cfg)
+            self.buffer = ReplayBuffer(self.obs_dim, ACT_DIM, self.sac_cfg.buffer_size)
+            (self.dir / "config.toml").write_text(self.config.to_toml())
+        self.rng = np.random.default_rng(self.sac_cfg.seed + self.ingested)
+
+    def metadata(self, score=None):
+        return policy_metadata(self.config, self.sac_cfg.hidden, training_steps=self.ingested, score=score,
+                               policy_version=self.policy_version)
+
+    def make_weights(self) -> bytes:
+        """Encode the current actor as the next policy version (cached for weights/latest)."""
+        self.policy_version += 1
+        w = Weights(self.policy_version, self.sac.num_updates, weights_of(self.sac.actor),
+                    meta={"policy_metadata": self.metadata().to_json()})
+        self.latest_weights = encode_weights(w, self.limits)
+        return self.latest_weights
+
+    def checkpoint(self) -> Path:
+        """Replay and policy first, learner state last: the learner file marks a complete set."""
+        self.buffer.save(self.dir / "replay.npz")
+        policy = self.sac.policy(self.metadata())
+        (self.dir / "checkpoints").mkdir(exist_ok=True)
+        policy_path = policy.save(self.dir / "checkpoints" / f"policy-{self.ingested:09d}.safetensors")
+        policy.save(self.dir / "policy.safetensors")
+        self.sac.save_checkpoint(self.dir / "checkpoint.safetensors",
+                                 extra={"ingested": self.ingested, "policy_version": self.policy_version})
+        self._last_checkpoint = self.ingested
+        return policy_path
+
+    # ------------------------------------------------------------------ ingestion
+    def ingest(self, key: str, payload: bytes) -> int:
+        """Validate one TransitionBatch and add it to replay; returns transitions added (0 if dropped)."""
+        try:
+            batch = decode_transitions(payload, obs_dim=self.obs_dim, act_dim=ACT_DIM, limits=self.limits)
+            sender = self.keys.actor_of(key)
+            if batch.actor_id != sender:
+                raise ProtocolError("bad_field", f"batch says actor {batch.actor_id!r} but came on {key!r}")
+        except ProtocolError as exc:
+            if self.rejects.reject(exc) <= 5:
+                log.warning("dropped a message on %s: %s", key, exc)
+            return 0
+        track = self.actors[batch.actor_id]
+        if batch.seq <= track.last_seq:
+            track.out_of_order += 1  # a restarted actor starts again at 0: not a gap
+        elif batch.seq > track.last_seq + 1 and track.last_seq >= 0:
+            track.gaps += batch.seq - track.last_seq - 1
+        track.last_seq = batch.seq
+        track.batches += 1
+        track.ingested += batch.n
+        track.staleness_sum += self.policy_version - batch.policy_version
+        self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated)
+        if batch.has_episodes:
+            for r, n, s in zip(batch.episode_returns, batch.episode_lengths, batch.episode_successes):
+                self.recent_episodes.append((float(r), int(n), bool(s)))
+                self.episode_count += 1
+                if self.writer is not None:
+                    self.writer.add_scalar("actors/episode_return", float(r), self.ingested + batch.n)
+                    self.writer.add_scalar("actors/success", float(s), self.ingested + batch.n)
+        self.rejects.accept()
+        self.ingested += batch.n
+        if len(self.buffer) >= self.sac_cfg.learning_starts:
+            self._updates_due = min(self._updates_due + batch.n * self.sac_cfg.updates_per_step, MAX_UPDATE_DEBT)
+        return batch.n
+
+    # ------------------------------------------------------------------ training
+    def train_some(self) -> dict:
+        metrics = {}
+        n = min(int(self._updates_due), MAX_UPDATES_PER_LOOP)
+        for i in range(n):
+            want = i == n - 1 and self.sac.num_updates % 50 < n
+            out = self.sac.update(self.buffer.sample(self.sac_cfg.batch_size, self.rng), metrics=want)
+            metrics = out or metrics
+        self._updates_due -= n
+        return metrics
+
+    def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
+        now = time.monotonic()
+        actors = {}
+        for actor_id, t in self.actors.items():
+            t_prev, n_prev = t.rate_mark
+            rate = (t.ingested - n_prev) / (now - t_prev) if t_prev else 0.0
+            t.rate_mark = (now, t.ingested)
+            actors[actor_id] = {"ingested": t.ingested, "per_s": rate, "last_seq": t.last_seq, "gaps": t.gaps,
+                                "out_of_order": t.out_of_order,
+                                "staleness": t.staleness_sum / t.batches if t.batches else 0.0}
+        episodes = list(self.recent_episodes)
+        return {
+            "ingested": self.ingested,
+            "updates": self.sac.num_updates,
+            "updates_per_s": (self.sac.num_updates - updates0) / max(elapsed, 1e-9),
+            "ingest_per_s": (self.ingested - ingested0) / max(elapsed, 1e-9),
+            "replay_size": len(self.buffer),
+            "policy_version": self.policy_version,
+            "episodes": self.episode_count,
+            "return_mean": float(np.mean([e[0] for e in episodes])) if episodes else None,
+            "success_rate": float(np.mean([e[2] for e in episodes])) if episodes else None,
+            "accepted": self.rejects.accepted,
+            "rejected": self.rejects.total,
+            "rejected_by_reason": self.rejects.counts(),
+            "gaps": sum(t.gaps for t in self.actors.values()),
+            "dropped_queue_full": self.inbox.dropped if self.inbox is not None else 0,
+            "alpha": self.sac.alpha,
+            "last_checkpoint": self._last_checkpoint,
+            "actors": actors,
+        }
+
+    # ------------------------------------------------------------------ service loop
+    def run(self, stop) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        cfg = self.config.learner
+        session = open_service_session(self.config, "learner")
+        self.writer = SummaryWriter(str(self.dir / "tb"))
+        # A full queue blocks Zenoh for up to 5 s (back-pressure on the actors) before dropping.
+        inbox = QueueSubscriber(session, self.keys.all_transitions, maxsize=cfg.ingest_queue, with_key=True,
+                                put_timeout=5.0)
+        self.inbox = inbox
+        try:
+            token = declare_token(session, self.keys.alive("learner", "0"))
+            weights_pub = declare_publisher(session, self.keys.weights)
+            ckpt_pub = declare_publisher(session, self.keys.checkpoints)
+            stats_pub = declare_publisher(session, self.keys.stats("learner", "0"))
+            self.make_weights()
+            queryable = declare_queryable(session, self.keys.weights_latest, lambda: self.latest_weights)
+            weights_pub.put(self.latest_weights)
+            t0, updates0, ingested0 = time.monotonic(), self.sac.num_updates, self.ingested
+            last_stats, last_broadcast, metrics = t0, self.sac.num_updates, {}
+            while not stop.is_set():
+                drained = 0
+                deadline = time.monotonic() + 0.02
+                while time.monotonic() < deadline:
+                    item = inbox.get(timeout=0.0 if (drained or self._updates_due >= 1) else 0.01)
+                    if item is None:
+                        break
+                    self.ingest(*item)
+                    drained += 1
+                if self._updates_due >= 1:
+                    metrics = self.train_some() or metrics
+                if self.sac.num_updates - last_broadcast >= cfg.broadcast_every:
+                    weights_pub.put(self.make_weights())
+                    last_broadcast = self.sac.num_updates
+                if self.ingested - self._last_checkpoint >= cfg.checkpoint_every:
+                    path = self.checkpoint()
+                    ckpt_pub.put(encode_checkpoint(Checkpoint(self.ingested, str(path), self.policy_version)))
+                now = time.monotonic()
+                if now - last_stats >= cfg.stats_every_s:
+                    values = self.stats(now - t0, updates0, ingested0)
+                    stats_pub.put(encode_stats(Stats("learner", "0", values)))
+                    self._log_scalars(values, metrics)
+                    last_stats = now
+            queryable.undeclare()
+            token.undeclare()
+        finally:
+            inbox.close()
+            close_session(session)
+            self.writer.close()
+
+    def _log_scalars(self, values: dict, metrics: dict) -> None:
+        w, step = self.writer, self.ingested
+        for key in ("updates_per_s", "ingest_per_s", "replay_size", "rejected", "gaps", "alpha"):
+            w.add_scalar(f"learner/{key}", values[key], step)
+        for key in ("return_mean", "success_rate"):
+            if values[key] is not None:
+                w.add_scalar(f"actors/{key}_100", values[key], step)
+        for k, v in metrics.items():
+            w.add_scalar(f"sac/{k}", v, step)
+        staleness = [a["staleness"] for a in values["actors"].values()]
+        if staleness:
+            w.add_scalar("actors/staleness", float(np.mean(staleness)), step)
+        w.flush()
+        log.info("ingested %d  updates %d (%.0f/s)  ingest %.0f/s  replay %d  v%d  episodes %d  return %s  "
+                 "success %s  rejected %d  gaps %d", values["ingested"], values["updates"], values["updates_per_s"],
+                 values["ingest_per_s"], values["replay_size"], values["policy_version"], values["episodes"],
+                 "-" if values["return_mean"] is None else f"{values['return_mean']:.1f}",
+                 "-" if values["success_rate"] is None else f"{values['success_rate']:.0%}",
+                 values["rejected"], values["gaps"])
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="forcegrasp learner", description=__doc__.splitlines()[0])
+    add_config_arguments(parser)
+    args = parser.parse_args(argv)
+    config = config_from_args(args)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    stop = stop_on_signals()
+    service = LearnerService(config)
+    log.info("learner: run %s, %s, listening on %s", config.run.name, config.env.object, config.network.learner_listen)
+    service.run(stop)
+    service.checkpoint()
+    log.info("learner: stopped at %d transitions, checkpoint written", service.ingested)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
