@@ -430,29 +430,50 @@ class TransitionBatch:
 
 
 def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) -> bytes:
-    """Validate and pack a batch: casts to the wire dtypes, so producers may pass float64."""
-    msg = {
-        "v": PROTOCOL_VERSION, "t": T_TRANSITIONS,
-        "actor": validate_name(batch.actor_id, "actor id"), "seq": int(batch.seq),
-        "policy_version": int(batch.policy_version), "time": float(batch.time),
-        "obs": encode_array(batch.obs, np.float32), "action": encode_array(batch.action, np.float32),
-        "reward": encode_array(batch.reward, np.float32),
-        "next_obs": encode_array(batch.next_obs, np.float32),
-        "terminated": encode_array(batch.terminated, np.bool_),
-        "truncated": encode_array(batch.truncated, np.bool_),
-    }
-    episodes = (batch.episode_returns, batch.episode_lengths, batch.episode_successes)
-    if any(e is not None for e in episodes):
-        if any(e is None for e in episodes):
-            raise ProtocolError(R_MISSING, "episode_returns, episode_lengths and episode_successes go together")
-        msg["ep_return"] = encode_array(batch.episode_returns, np.float32)
-        msg["ep_length"] = encode_array(batch.episode_lengths, np.int32)
-        msg["ep_success"] = encode_array(batch.episode_successes, np.bool_)
+    """Validate and pack a batch with the receiver's rules; casts to the wire dtypes first.
+
+    Producers may pass float64 or int flags.  A batch the learner would reject (NaN from a
+    diverged simulation, inconsistent lengths) raises ProtocolError here, at the source.
+    """
+    wire = _to_wire_dtypes(batch)
+    _check_batch_shapes(wire, None, None, limits)
+    for name in ("obs", "action", "reward", "next_obs", "episode_returns"):
+        if getattr(wire, name) is not None:
+            _check_values(getattr(wire, name), name)
+    for name in ("seq", "policy_version"):
+        if not _is_int(getattr(wire, name)) or not 0 <= getattr(wire, name) <= _INT64_MAX:
+            raise ProtocolError(R_FIELD, f"{name} must be an integer in [0, 2^63)")
+    msg = {"v": PROTOCOL_VERSION, "t": T_TRANSITIONS, "actor": wire.actor_id, "seq": wire.seq,
+           "policy_version": wire.policy_version, "time": wire.time}
+    for name in ("obs", "action", "reward", "next_obs", "terminated", "truncated"):
+        msg[name] = encode_array(getattr(wire, name))
+    if wire.has_episodes:
+        msg["ep_return"] = encode_array(wire.episode_returns)
+        msg["ep_length"] = encode_array(wire.episode_lengths)
+        msg["ep_success"] = encode_array(wire.episode_successes)
     payload = _pack(msg)
-    obs_dim = np.shape(batch.obs)[-1] if np.ndim(batch.obs) == 2 else None
-    act_dim = np.shape(batch.action)[-1] if np.ndim(batch.action) == 2 else None
-    decode_transitions(payload, obs_dim=obs_dim, act_dim=act_dim, limits=limits)  # same rules both ends
+    if len(payload) > limits.max_payload_bytes:
+        raise ProtocolError(R_OVERSIZE, f"{len(payload)} bytes > cap {limits.max_payload_bytes}")
     return payload
+
+
+def _to_wire_dtypes(b: TransitionBatch) -> TransitionBatch:
+    """A copy of the batch whose arrays have the wire dtypes (no copy when they already do)."""
+    episodes = (b.episode_returns, b.episode_lengths, b.episode_successes)
+    if any(e is not None for e in episodes) and any(e is None for e in episodes):
+        raise ProtocolError(R_MISSING, "episode_returns, episode_lengths and episode_successes go together")
+
+    def cast(x: Any, dtype: type) -> np.ndarray | None:
+        return None if x is None else np.asarray(x, dtype=dtype)
+
+    return TransitionBatch(
+        actor_id=validate_name(b.actor_id, "actor id"), seq=int(b.seq), policy_version=int(b.policy_version),
+        time=float(b.time), obs=cast(b.obs, np.float32), action=cast(b.action, np.float32),
+        reward=cast(b.reward, np.float32), next_obs=cast(b.next_obs, np.float32),
+        terminated=cast(b.terminated, np.bool_), truncated=cast(b.truncated, np.bool_),
+        episode_returns=cast(b.episode_returns, np.float32), episode_lengths=cast(b.episode_lengths, np.int32),
+        episode_successes=cast(b.episode_successes, np.bool_),
+    )
 
 
 def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int | None = None,
