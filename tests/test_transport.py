@@ -7,11 +7,13 @@ Each test spawns its helper process with ``sys.executable -c``, finds a free por
 from __future__ import annotations
 
 import queue
+import re
 import signal
 import subprocess
 import sys
 import textwrap
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +22,6 @@ from forcegrasp import transport
 from forcegrasp.protocol import (
     Keys,
     ProtocolError,
-    Weights,
     decode_transitions,
     decode_weights,
     encode_weights,
@@ -257,6 +258,36 @@ def test_bad_payloads_from_the_wire_are_rejected_not_raised(endpoint):
     finally:
         transport.close_session(sender)
         transport.close_session(receiver)
+
+
+def test_documented_third_party_client_joins(endpoint):
+    """The client in docs/protocol.md (plain zenoh + msgpack) is accepted by our decoder."""
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "protocol.md").read_text()
+    code = re.findall(r"```python\n(.*?)```", doc, re.S)[-1].replace('"tcp/127.0.0.1:7447"', repr(endpoint))
+    keys = Keys("default")
+    session = transport.open_session([endpoint], [])
+    proc = None
+    try:
+        served = encode_weights(weights_v(3))
+        transport.declare_queryable(session, keys.weights_latest, lambda: served)
+        sub = transport.QueueSubscriber(session, keys.all_transitions, with_key=True)
+        events: queue.Queue = queue.Queue()
+        transport.watch_liveliness(session, keys.alive_of("actor"), lambda k, alive: events.put(alive))
+        proc = spawn(code)
+        seen = []
+        deadline = time.monotonic() + 60
+        while len(seen) < 10 and time.monotonic() < deadline:
+            item = sub.get(timeout=1.0)
+            if item is not None:
+                batch = decode_transitions(item[1], obs_dim=OBS, act_dim=ACT)
+                assert keys.actor_of(item[0]) == batch.actor_id == "remote-0"
+                seen.append((batch.seq, batch.policy_version))
+        assert seen == [(seq, 3) for seq in range(10)]
+        assert proc.wait(timeout=30) == 0, proc.stderr.read()
+        assert [events.get(timeout=10), events.get(timeout=10)] == [True, False]
+    finally:
+        kill(proc)
+        transport.close_session(session)
 
 
 def test_config_builder_sets_endpoints_and_lease():
