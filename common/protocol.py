@@ -79,9 +79,9 @@ def validate_name(name: Any, what: str = "name") -> str:
     ('*', '$') or a selector character ('?', '#') inside one would silently widen or break
     subscriptions, so they are refused here instead.  Integers are accepted (actor 3 -> "3").
     """
-    if isinstance(name, bool) or not isinstance(name, (str, int)):
+    if isinstance(name, (bool, np.bool_)) or not isinstance(name, (str, int, np.integer)):
         raise ProtocolError(R_FIELD, f"{what} must be a string, got {type(name).__name__}")
-    text = str(name)
+    text = str(name) if isinstance(name, str) else str(int(name))
     if not text:
         raise ProtocolError(R_FIELD, f"{what} is empty")
     if len(text) > _MAX_NAME_LEN:
