@@ -1,0 +1,376 @@
+"""Soft Actor-Critic, the learner core (Haarnoja et al., 2018, "Soft Actor-Critic Algorithms and
+Applications", arXiv:1812.05905): tanh-squashed Gaussian actor, twin Q critics with Polyak-averaged
+targets, automatic entropy tuning.
+
+Read top to bottom: the hyper-parameters, the critic network, the `SAC` learner (one `update` is
+the paper's Algorithm 1 inner loop), checkpoints, and a small single-environment training loop.
+The actor network lives in `forcegrasp.policy` because it is also what gets deployed.
+
+Update order: the three losses (critics, actor, temperature) are computed from the same
+parameter values and applied together, as in the authors' original TensorFlow 1 code (softlearning
+ran the Q, policy and temperature train ops in one ``session.run``); their later TF2 code,
+stable-baselines3 and CleanRL step the critics before computing the actor loss. The simultaneous form needs one backward pass and one
+optimizer step per update, which is most of why it is fast:
+
+* both critics are one ensemble whose layers are single batched matmuls (weights ``(2, in, out)``);
+* the actor loss sees the critics through detached weights, so the backward pass computes dQ/da
+  but not the critic weight gradients it would discard;
+* one fused Adam over all parameter groups; one fused ``lerp`` for the Polyak update;
+* metrics leave the device once per update, not once per value.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import safetensors.torch
+import torch
+from torch import nn
+
+from forcegrasp.policy import Actor, Policy, configure_threads, select_device
+from forcegrasp.policy_file import PolicyMetadata, atomic_write
+from forcegrasp.replay import Batch, ReplayBuffer
+
+CHECKPOINT_FORMAT = "forcegrasp-sac-checkpoint"
+CHECKPOINT_VERSION = 1
+METRICS = ("critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q1", "q2", "q_target")
+
+
+@dataclass
+class SACConfig:
+    """Every SAC hyper-parameter; defaults are the paper's (table 1 and section 7)."""
+
+    # Data collection and run length.
+    total_steps: int = 1_000_000  # environment steps
+    learning_starts: int = 1_000  # uniformly random actions before the first update
+    updates_per_step: float = 1.0  # gradient updates per environment step (UTD ratio)
+    buffer_size: int = 1_000_000  # replay capacity (transitions)
+    batch_size: int = 256
+    # Networks.
+    hidden: tuple[int, ...] = (256, 256)  # actor and each critic, ReLU
+    log_std_bounds: tuple[float, float] = (-20.0, 2.0)  # clamp of the actor's log-std
+    # Optimisation (Adam).
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    alpha_lr: float = 3e-4
+    gamma: float = 0.99  # discount
+    tau: float = 0.005  # Polyak rate of the target critics
+    target_update_interval: int = 1  # updates between target-critic updates
+    # Entropy temperature.
+    autotune_alpha: bool = True  # learn alpha so that entropy tracks target_entropy
+    init_alpha: float = 1.0
+    target_entropy: float | None = None  # None: -action_dim (paper's heuristic)
+    # Runtime.
+    seed: int = 0
+    device: str = "auto"  # "auto": CUDA when available, else CPU
+    num_threads: int | None = None  # CPU torch threads; None: one per core (capped at 8)
+
+    def __post_init__(self):
+        self.hidden = tuple(int(h) for h in self.hidden)
+        self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
+
+
+class TwinQ(nn.Module):
+    """`n` independent Q-networks Q_i(s, a) evaluated together.
+
+    Layer k of every member is one slice of a ``(n, in, out)`` weight, so each layer of the whole
+    ensemble is a single `baddbmm` instead of n small matmuls (and n optimizer parameter sets).
+    Initialisation matches `nn.Linear` (uniform in +-1/sqrt(fan_in)) so members start independent.
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), n: int = 2):
+        super().__init__()
+        dims = [obs_dim + act_dim, *hidden, 1]
+        self.n = n
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            bound = 1.0 / math.sqrt(d_in)
+            self.weights.append(nn.Parameter(torch.empty(n, d_in, d_out).uniform_(-bound, bound)))
+            self.biases.append(nn.Parameter(torch.empty(n, 1, d_out).uniform_(-bound, bound)))
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """Q-values of every member, shape ``(n, batch)``.
+
+        ``frozen=True`` uses detached weights: gradients still flow to `action` (the actor loss
+        needs dQ/da) but none are computed for, or accumulated into, the critic's weights.
+        """
+        x = torch.cat([obs, action], dim=-1).expand(self.n, -1, -1)
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            if frozen:
+                w, b = w.detach(), b.detach()
+            x = torch.baddbmm(b, x, w)
+            if i < last:
+                x = torch.relu(x)
+        return x.squeeze(-1)
+
+
+class Losses(NamedTuple):
+    critic_loss: torch.Tensor  # J_Q summed over both critics (grad to the critics only)
+    actor_loss: torch.Tensor  # J_pi (grad to the actor only)
+    alpha_loss: torch.Tensor  # J(alpha) (grad to log_alpha only; zero when alpha is fixed)
+    q: torch.Tensor  # (2, B) Q_i(s, a), detached
+    target: torch.Tensor  # (B,) soft Bellman target y
+    log_prob: torch.Tensor  # (B,) log pi(a|s) of the fresh actions, detached
+    alpha: torch.Tensor  # the temperature used in these losses
+
+
+class SAC:
+    """The learner: owns the actor, the critics, their targets, the optimizers and alpha.
+
+    It does not own the replay buffer or the environment; callers pass minibatches to `update`.
+    """
+
+    def __init__(self, obs_dim: int, act_dim: int, config: SACConfig | None = None):
+        cfg = self.config = config or SACConfig()
+        self.obs_dim, self.act_dim = int(obs_dim), int(act_dim)
+        self.device = select_device(cfg.device)
+        if self.device.type == "cpu":
+            configure_threads(cfg.num_threads)
+
+        with torch.random.fork_rng(devices=[]):  # seeded init without touching the global RNG
+            torch.manual_seed(cfg.seed)
+            actor = Actor(obs_dim, act_dim, cfg.hidden, cfg.log_std_bounds)
+            critic = TwinQ(obs_dim, act_dim, cfg.hidden)
+        self.actor = actor.to(self.device)
+        self.critic = critic.to(self.device)
+        self.critic_target = TwinQ(obs_dim, act_dim, cfg.hidden).to(self.device).requires_grad_(False)
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        self.log_alpha = torch.tensor(math.log(cfg.init_alpha), device=self.device, requires_grad=cfg.autotune_alpha)
+        self.target_entropy = -float(act_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
+
+        # One Adam over three parameter groups: the losses below touch disjoint parameters, so a
+        # single backward of their sum and a single (fused) step update all of them at once.
+        groups = [{"params": list(self.critic.parameters()), "lr": cfg.critic_lr, "name": "critic"},
+                  {"params": list(self.actor.parameters()), "lr": cfg.actor_lr, "name": "actor"}]
+        if cfg.autotune_alpha:
+            groups.append({"params": [self.log_alpha], "lr": cfg.alpha_lr, "name": "log_alpha"})
+        adam = {"fused": True} if _fused_adam_ok(self.device) else {"foreach": True}
+        self.optimizer = torch.optim.Adam(groups, **adam)
+        self.critic_params = groups[0]["params"]
+        self.target_params = list(self.critic_target.parameters())
+
+        self.generator = torch.Generator(device=self.device)
+        self.generator.manual_seed(cfg.seed)
+        self.num_updates = 0
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.detach().exp())
+
+    # -- the gradient step ----------------------------------------------------------------------
+    def losses(self, obs, action, reward, next_obs, terminated) -> Losses:
+        """The three SAC objectives on one minibatch of tensors (no parameter is changed).
+
+        All three are computed from the same parameter values (see the module docstring).
+        """
+        cfg = self.config
+        alpha = self.log_alpha.detach().exp()
+
+        # 1. Soft Bellman target with the smaller target Q (clipped double-Q) and a fresh action:
+        #    y = r + gamma (1 - done) (min_i Q'_i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s').
+        with torch.no_grad():
+            next_action, next_log_prob = self.actor.sample(next_obs, self.generator)
+            next_q = self.critic_target(next_obs, next_action).amin(0)
+            target = reward + cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_prob)
+
+        # 2. Critic loss J_Q = 0.5 E[(Q_i(s, a) - y)^2], summed over both critics.
+        q = self.critic(obs, action)  # (2, B)
+        critic_loss = 0.5 * (q - target).square().mean(1).sum()
+
+        # 3. Actor loss J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], a = tanh(mean + std eps)
+        #    reparameterised; frozen critics pass dQ/da to the actor and take no gradient themselves.
+        new_action, log_prob = self.actor.sample(obs, self.generator)
+        actor_loss = (alpha * log_prob - self.critic(obs, new_action, frozen=True).amin(0)).mean()
+
+        # 4. Temperature loss J(alpha) = E[-alpha (log pi(a|s) + target_entropy)]: raises alpha
+        #    while the policy's entropy is below the target, lowers it above.
+        log_prob = log_prob.detach()
+        if cfg.autotune_alpha:
+            alpha_loss = -(self.log_alpha.exp() * (log_prob + self.target_entropy)).mean()
+        else:
+            alpha_loss = torch.zeros((), device=self.device)
+        return Losses(critic_loss, actor_loss, alpha_loss, q.detach(), target, log_prob, alpha)
+
+    def update(self, batch, metrics: bool = True) -> dict[str, float]:
+        """One gradient step on critics, actor and temperature, then the target-critic update.
+
+        `batch` is a `forcegrasp.replay.Batch` (or a dict with its fields) of arrays or tensors.
+        Returns float metrics; ``metrics=False`` skips their (single) device-to-host copy.
+        """
+        out = self.losses(*self._tensors(batch))
+
+        # 5. Each loss reaches only its own parameters, so one backward of the sum and one Adam
+        #    step over all parameter groups apply the three gradient steps at once.
+        self.optimizer.zero_grad(set_to_none=True)
+        (out.critic_loss + out.actor_loss + out.alpha_loss).backward()
+        self.optimizer.step()
+
+        # 6. Target critics: theta' <- theta' + tau (theta - theta'), one fused op over all tensors.
+        self.num_updates += 1
+        if self.num_updates % self.config.target_update_interval == 0:
+            with torch.no_grad():
+                torch._foreach_lerp_(self.target_params, self.critic_params, self.config.tau)
+
+        if not metrics:
+            return {}
+        values = torch.stack([
+            out.critic_loss.detach(), out.actor_loss.detach(), out.alpha_loss.detach(), out.alpha,
+            -out.log_prob.mean(), out.q[0].mean(), out.q[1].mean(), out.target.mean(),
+        ]).tolist()  # the only device-to-host transfer of the step
+        return dict(zip(METRICS, values))
+
+    def _tensors(self, batch):
+        if isinstance(batch, dict):
+            batch = Batch(**batch)
+        return tuple(
+            torch.as_tensor(getattr(batch, k)).to(self.device, torch.float32, non_blocking=True)
+            for k in ("obs", "action", "reward", "next_obs", "terminated")
+        )
+
+    # -- acting ---------------------------------------------------------------------------------
+    def act(self, obs: np.ndarray, deterministic: bool = False) -> np.ndarray:
+        """Action(s) in [-1, 1] for one observation or a batch, for local data collection."""
+        obs = np.asarray(obs, dtype=np.float32)
+        with torch.inference_mode():
+            x = torch.as_tensor(obs, device=self.device)
+            x = x if x.ndim == 2 else x.unsqueeze(0)
+            a = self.actor.deterministic(x) if deterministic else self.actor.sample(x, self.generator)[0]
+            a = a.cpu().numpy()
+        return a if obs.ndim == 2 else a[0]
+
+    def policy(self, metadata: PolicyMetadata | None = None, device="cpu") -> Policy:
+        """A standalone copy of the current actor, ready to save or deploy."""
+        if metadata is None:
+            metadata = PolicyMetadata([("obs", self.obs_dim)], [("action", self.act_dim)], self.config.hidden,
+                                      training_steps=self.num_updates)
+        return Policy.from_actor(self.actor, metadata, device=device)
+
+    # -- checkpoints ----------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        """Everything needed to resume exactly, as a flat ``{name: tensor}`` dict.
+
+        Networks, targets, log-alpha, the update counter, the sampling RNG state, and each Adam
+        parameter's step count and moments (zeros before the first step, which is what Adam starts
+        from). Adam's hyper-parameters come from the config, so they are not repeated here.
+        """
+        state = {"log_alpha": self.log_alpha.detach(), "num_updates": torch.tensor(self.num_updates, dtype=torch.int64),
+                 "generator": self.generator.get_state()}
+        for prefix, module in self._modules():
+            state.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
+        saved = self.optimizer.state_dict()["state"]
+        for idx, p in enumerate(p for g in self.optimizer.param_groups for p in g["params"]):
+            slots = saved.get(idx) or {"step": torch.zeros((), dtype=torch.float32), "exp_avg": torch.zeros_like(p),
+                                       "exp_avg_sq": torch.zeros_like(p)}
+            state.update({f"adam.{idx}.{k}": torch.as_tensor(v) for k, v in slots.items()})
+        return {k: v.detach().contiguous() for k, v in state.items()}
+
+    def load_state_dict(self, state: dict[str, torch.Tensor]) -> None:
+        """Inverse of `state_dict`; raises `ValueError` naming any missing, extra or misshapen entry."""
+        expected = {k: tuple(v.shape) for k, v in self.state_dict().items()}
+        missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
+        if missing or unexpected:
+            raise ValueError(f"SAC state does not match this learner: missing {missing}, unexpected {unexpected}")
+        for k, v in state.items():
+            if tuple(v.shape) != expected[k]:
+                raise ValueError(f"SAC state entry {k!r} has shape {tuple(v.shape)}, expected {expected[k]}")
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.num_updates = int(state["num_updates"])
+        self.generator.set_state(state["generator"].cpu())
+        for prefix, module in self._modules():
+            module.load_state_dict({k[len(prefix) + 1 :]: v for k, v in state.items() if k.startswith(prefix + ".")})
+        slots: dict[int, dict] = {}
+        for k, v in state.items():
+            if k.startswith("adam."):
+                _, idx, name = k.split(".")
+                slots.setdefault(int(idx), {})[name] = v
+        self.optimizer.load_state_dict({"state": slots, "param_groups": self.optimizer.state_dict()["param_groups"]})
+
+    def _modules(self):
+        return (("actor", self.actor), ("critic", self.critic), ("critic_target", self.critic_target))
+
+    def save_checkpoint(self, path: str | os.PathLike, extra: dict | None = None) -> Path:
+        """Atomic safetensors file: the tensors of `state_dict`, config and `extra` as header JSON."""
+        header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "obs_dim": self.obs_dim,
+                  "act_dim": self.act_dim, "config": asdict(self.config), "extra": extra or {}}
+        data = safetensors.torch.save({k: v.cpu() for k, v in self.state_dict().items()},
+                                      metadata={"forcegrasp.sac": json.dumps(header)})
+        with atomic_write(path) as f:
+            f.write(data)
+        return Path(path)
+
+    @classmethod
+    def load_checkpoint(cls, path: str | os.PathLike, device: str | None = None) -> tuple["SAC", dict]:
+        """Rebuild a learner from `save_checkpoint`; returns ``(sac, extra)``. Never unpickles."""
+        try:
+            with safetensors.safe_open(str(path), framework="pt") as f:
+                header = json.loads((f.metadata() or {})["forcegrasp.sac"])
+                state = {k: f.get_tensor(k) for k in f.keys()}
+        except (KeyError, json.JSONDecodeError, safetensors.SafetensorError) as exc:
+            raise ValueError(f"{path}: not a readable SAC checkpoint ({type(exc).__name__}: {exc})") from None
+        if header.get("format") != CHECKPOINT_FORMAT or header.get("version") != CHECKPOINT_VERSION:
+            raise ValueError(f"{path}: unsupported checkpoint format {header.get('format')!r} v{header.get('version')!r}")
+        known = {f.name for f in fields(SACConfig)}
+        config = SACConfig(**{k: v for k, v in header["config"].items() if k in known})
+        if device is not None:
+            config.device = device
+        sac = cls(header["obs_dim"], header["act_dim"], config)
+        sac.load_state_dict(state)
+        return sac, header["extra"]
+
+
+def _fused_adam_ok(device: torch.device) -> bool:
+    """Fused Adam runs the whole parameter update as one kernel; CPU support arrived in torch 2.4."""
+    try:
+        torch.optim.Adam([torch.zeros(1, device=device, requires_grad=True)], fused=True)
+        return True
+    except (RuntimeError, TypeError):
+        return False
+
+
+def train(env, config: SACConfig | None = None, on_episode=None) -> SAC:
+    """Run SAC on one Gymnasium environment whose action space is Box(-1, 1) (wrap others with
+    `gymnasium.wrappers.RescaleAction`). ``on_episode(step, episode_return)`` is called after each
+    episode. Local reference loop; the distributed learner service does the same with many actors.
+    """
+    cfg = config or SACConfig()
+    space = env.action_space
+    if not (np.allclose(space.low, -1.0) and np.allclose(space.high, 1.0)):
+        raise ValueError(f"action space must be [-1, 1] (got {space}); wrap the env with RescaleAction(env, -1, 1)")
+    obs_dim, act_dim = env.observation_space.shape[0], space.shape[0]
+    sac = SAC(obs_dim, act_dim, cfg)
+    buffer = ReplayBuffer(obs_dim, act_dim, min(cfg.buffer_size, cfg.total_steps))
+    rng = np.random.default_rng(cfg.seed)
+
+    obs, _ = env.reset(seed=cfg.seed)
+    episode_return, updates_due = 0.0, 0.0
+    for step in range(cfg.total_steps):
+        if step < cfg.learning_starts:  # pure exploration fills the buffer first
+            action = rng.uniform(-1.0, 1.0, act_dim).astype(np.float32)
+        else:
+            action = sac.act(obs)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        # Store the real next observation; only true termination stops bootstrapping.
+        buffer.add(obs, action, reward, next_obs, float(terminated))
+        episode_return += float(reward)
+        obs = next_obs
+        if terminated or truncated:
+            if on_episode is not None:
+                on_episode(step + 1, episode_return)
+            obs, _ = env.reset()
+            episode_return = 0.0
+
+        if step + 1 >= cfg.learning_starts:  # fractional UTD ratios accumulate across steps
+            updates_due += cfg.updates_per_step
+            while updates_due >= 1.0:
+                sac.update(buffer.sample(cfg.batch_size, rng), metrics=False)
+                updates_due -= 1.0
+    return sac
