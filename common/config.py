@@ -109,6 +109,8 @@ class LearnerConfig:
     """Learner service knobs; SAC hyper-parameters go in [learner.sac] (see forcegrasp.sac.SACConfig)."""
 
     broadcast_every: int = _f(100, "gradient updates between weight broadcasts", min=1)
+    max_lead: int = _f(2048, "transitions the actors may run ahead of updates / updates_per_step (0: no rate limit)",
+                       min=0)
     checkpoint_every: int = _f(10000, "environment steps (transitions ingested) between checkpoints", min=1)
     snapshot_replay: bool = _f(True, "save the replay buffer with checkpoints, so a restart resumes it")
     ingest_queue: int = _f(1024, "received batches waiting to be decoded (the Zenoh callback's queue)", min=1)

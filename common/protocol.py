@@ -127,6 +127,12 @@ class Keys:
         return f"{self.prefix}/checkpoints"
 
     @property
+    def progress(self) -> str:
+        """Learner's ingestion headroom (Stats message, ~20 Hz): actors pause while it is used up,
+        which holds the update-to-data ratio (the rate limiter)."""
+        return f"{self.prefix}/progress"
+
+    @property
     def best(self) -> str:
         """Evaluator's queryable answering with its best policy (Checkpoint message)."""
         return f"{self.prefix}/best"

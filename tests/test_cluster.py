@@ -40,6 +40,7 @@ class Cluster:
                 f'network.learner_listen=["tcp/127.0.0.1:{self.port}"]',
                 "network.lease_ms=1000",
                 "learner.broadcast_every=25",
+                "learner.max_lead=64",
                 "learner.checkpoint_every=600",
                 "learner.stats_every_s=0.5",
                 "learner.sac.learning_starts=200",
@@ -129,6 +130,16 @@ def test_two_actors_stream_without_gaps(cluster):
     )
     learner = s["learner"]
     assert learner["gaps"] == 0 and learner["rejected"] == 0
+    # The rate limiter holds 1 update per step: whatever the actors buffered before the learner
+    # came up is worked off, then the updates owed stay within max_lead (+ what two actors can
+    # have in flight), with the actors pausing.
+    limit = 200 + 64 + 2 * 4 * 16
+    cluster.wait_for("the learner's lead worked off", lambda s: s["learner"]["ingested"] - s["learner"]["updates"] <= limit)
+    mark = len(cluster.history["learner"])
+    s = cluster.wait_for("more training", lambda s: s["learner"]["updates"] > 400 + cluster.history["learner"][mark - 1]["updates"])
+    for values in cluster.history["learner"][mark:]:
+        assert values["ingested"] - values["updates"] <= limit, values
+    assert any(a["paused_s"] > 0 for name, a in s.items() if name != "learner")
     for a in ("actor-a", "actor-b"):
         track = learner["actors"][a]
         assert track["gaps"] == 0 and track["out_of_order"] == 0
@@ -141,7 +152,8 @@ def test_weights_reach_the_actors(cluster):
         "actors acting with broadcast weights",
         lambda s: s["actor-a"]["policy_version"] >= 3 and s["actor-b"]["policy_version"] >= 3,
     )
-    assert s["learner"]["policy_version"] >= s["actor-a"]["policy_version"]
+    acted_with = s["actor-a"]["policy_version"]  # a version the learner really broadcast:
+    cluster.wait_for("learner stats catching up", lambda s: s["learner"]["policy_version"] >= acted_with)
     assert s["actor-a"]["rejected_weights"] == 0
 
 

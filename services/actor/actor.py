@@ -7,6 +7,8 @@ transitions to the learner over Zenoh.
   with, episodes that ended) on ``forcegrasp/<run>/transitions/<actor>``.
 - Asks ``weights/latest`` at start, so a late joiner acts with current weights at once, then
   keeps the newest broadcast from ``weights``.
+- Pauses while the learner's published headroom is used up (the rate limiter that holds the
+  update-to-data ratio); when no learner is there it runs on.
 - While no learner listens it keeps a bounded outbox (oldest batches dropped first) and sends it
   when a learner is back. It never exits on its own: only SIGINT/SIGTERM stop it.
 """
@@ -29,6 +31,7 @@ from forcegrasp.protocol import (
     RejectCounter,
     Stats,
     TransitionBatch,
+    decode_stats,
     decode_weights,
     encode_stats,
     encode_transitions,
@@ -69,6 +72,9 @@ class ActorService:
         self.outbox: collections.deque[bytes] = collections.deque(maxlen=config.actor.max_buffered_batches)
         self._pending: list[tuple] = []
         self._ended: list[tuple[float, int, bool]] = []
+        self._headroom: float | None = None  # from the learner's progress messages
+        self._sent_since_progress = 0
+        self.paused_s = 0.0
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, dtype=np.int64)
 
@@ -90,6 +96,26 @@ class ActorService:
             self.weight_rejects.reject(exc if isinstance(exc, ProtocolError) else "bad_weights")
             log.warning("actor %s: rejected weights message: %s", self.actor_id, exc)
             return False
+
+    def apply_progress(self, payload: bytes) -> None:
+        try:
+            values = decode_stats(payload).values
+            headroom = values.get("headroom")
+            self._headroom = None if headroom is None else float(headroom)
+            self._sent_since_progress = 0
+        except (ProtocolError, TypeError, ValueError):
+            self.weight_rejects.reject("bad_progress")
+
+    def must_wait(self, learner_present: bool) -> bool:
+        """True while a live learner says the actors are ahead of its update-to-data ratio.
+
+        A learner busy in a long step sends no news but is still there (its subscriber still
+        matches): its last word holds. A learner that is gone releases the actor, which then
+        fills its bounded outbox.
+        """
+        if self._headroom is None or not learner_present:
+            return False
+        return self._headroom - self._sent_since_progress <= 0
 
     def act(self) -> np.ndarray:
         if self.steps < self.config.actor.random_steps or self.policy is None:
@@ -163,6 +189,7 @@ class ActorService:
             "buffered_batches": len(self.outbox),
             "dropped_batches": self.dropped_batches,
             "rejected_weights": self.weight_rejects.total,
+            "paused_s": round(self.paused_s, 3),
         }
 
     # ------------------------------------------------------------------ service loop
@@ -174,6 +201,7 @@ class ActorService:
             transitions = declare_publisher(session, keys.transitions(self.actor_id))
             stats_pub = declare_publisher(session, keys.stats("actor", self.actor_id))
             weights_sub = subscribe_latest(session, keys.weights)
+            progress_sub = subscribe_latest(session, keys.progress)
             last_query = -1e9
             last_stats = 0.0
             t0 = time.monotonic()
@@ -187,15 +215,23 @@ class ActorService:
                     reply = query_bytes(session, keys.weights_latest, timeout=0.5)
                     if reply is not None:
                         self.apply_weights(reply)
+                progress = take_latest(progress_sub)
+                if progress is not None:
+                    self.apply_progress(progress)
+                if now - last_stats > 1.0:
+                    last_stats = now
+                    values = {**self.stats(), "steps_per_s": self.steps / max(now - t0, 1e-9)}
+                    stats_pub.put(encode_stats(Stats("actor", self.actor_id, values)))
+                if self.must_wait(has_subscribers(transitions)):
+                    time.sleep(0.002)
+                    self.paused_s += 0.002
+                    continue
                 self.step_all()
                 if self.outbox and has_subscribers(transitions):
                     while self.outbox:
                         transitions.put(self.outbox.popleft())
                         self.sent_batches += 1
-                if now - last_stats > 1.0:
-                    last_stats = now
-                    values = {**self.stats(), "steps_per_s": self.steps / max(now - t0, 1e-9)}
-                    stats_pub.put(encode_stats(Stats("actor", self.actor_id, values)))
+                        self._sent_since_progress += self.config.actor.publish_batch
             token.undeclare()
         finally:
             from forcegrasp.transport import close_session
@@ -205,18 +241,20 @@ class ActorService:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="forcegrasp actor", description=__doc__.splitlines()[0])
-    parser.add_argument("--id", default=None, help="actor id (default: actor-<pid>)")
-    parser.add_argument("--seed", type=int, default=None, help="env seed (default: run.seed + 1000)")
+    parser.add_argument("--id", default=None, help="actor id (default: actor-<host>-<pid>, unique per machine)")
+    parser.add_argument("--seed", type=int, default=None, help="env and exploration seed (default: random)")
     add_config_arguments(parser)
     args = parser.parse_args(argv)
     config = config_from_args(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     import os
+    import socket
 
-    actor_id = args.id or f"actor-{os.getpid()}"
+    actor_id = args.id or f"actor-{socket.gethostname()}-{os.getpid()}"
+    seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(4), "little")
     configure_threads(1)  # a batch of a few observations gains nothing from more; leave cores to the envs
     stop = stop_on_signals()
-    service = ActorService(config, actor_id, seed=args.seed)
+    service = ActorService(config, actor_id, seed=seed)
     log.info("actor %s: %d envs of %s, run %s", actor_id, len(service.envs), config.env.object, config.run.name)
     service.run(stop)
     log.info("actor %s: stopped after %d steps", actor_id, service.steps)

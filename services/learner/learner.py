@@ -51,6 +51,7 @@ from forcegrasp.transport import (
 log = logging.getLogger("forcegrasp.learner")
 ACT_DIM = 7
 MAX_UPDATES_PER_LOOP = 8  # then look at the network again, so ingestion never starves
+MAX_DRAIN_PER_LOOP = 512
 MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
 
 
@@ -190,6 +191,18 @@ class LearnerService:
         self._updates_due -= n
         return metrics
 
+    def headroom(self) -> float | None:
+        """Transitions the learner will still take before it owes too many updates (None: no limit).
+
+        The debt is the updates owed for data already ingested (``updates_per_step`` each);
+        actors pause while it exceeds ``max_lead`` transitions' worth, so training holds the
+        ratio however fast the actors are, and a learner with nothing owed never waits.
+        """
+        lead = self.config.learner.max_lead
+        if lead == 0:
+            return None
+        return lead - self._updates_due / self.sac_cfg.updates_per_step
+
     def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
         now = time.monotonic()
         actors = {}
@@ -237,20 +250,21 @@ class LearnerService:
             weights_pub = declare_publisher(session, self.keys.weights)
             ckpt_pub = declare_publisher(session, self.keys.checkpoints)
             stats_pub = declare_publisher(session, self.keys.stats("learner", "0"))
+            progress_pub = declare_publisher(session, self.keys.progress)
+            last_progress = 0.0
             self.make_weights()
             queryable = declare_queryable(session, self.keys.weights_latest, lambda: self.latest_weights)
             weights_pub.put(self.latest_weights)
             t0, updates0, ingested0 = time.monotonic(), self.sac.num_updates, self.ingested
             last_stats, last_broadcast, metrics = t0, self.sac.num_updates, {}
             while not stop.is_set():
-                drained = 0
-                deadline = time.monotonic() + 0.02
-                while time.monotonic() < deadline:
+                # Drain everything waiting (decoding is ~0.2 ms a batch): the replay, the
+                # headroom the actors see and the update debt then all describe the same data.
+                for drained in range(MAX_DRAIN_PER_LOOP):
                     item = inbox.get(timeout=0.0 if (drained or self._updates_due >= 1) else 0.01)
                     if item is None:
                         break
                     self.ingest(*item)
-                    drained += 1
                 if self._updates_due >= 1:
                     metrics = self.train_some() or metrics
                 if self.sac.num_updates - last_broadcast >= cfg.broadcast_every:
@@ -260,6 +274,10 @@ class LearnerService:
                     path = self.checkpoint()
                     ckpt_pub.put(encode_checkpoint(Checkpoint(self.ingested, str(path), self.policy_version)))
                 now = time.monotonic()
+                if now - last_progress >= 0.05:
+                    progress = {"ingested": self.ingested, "updates": self.sac.num_updates, "headroom": self.headroom()}
+                    progress_pub.put(encode_stats(Stats("learner", "progress", progress)))
+                    last_progress = now
                 if now - last_stats >= cfg.stats_every_s:
                     values = self.stats(now - t0, updates0, ingested0)
                     stats_pub.put(encode_stats(Stats("learner", "0", values)))
