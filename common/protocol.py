@@ -425,6 +425,7 @@ class TransitionBatch:
     episode_lengths: np.ndarray | None = None    # i32[k]
     episode_successes: np.ndarray | None = None  # bool[k]
     time: float = field(default_factory=time.time)  # sender wall clock, seconds
+    epoch: int = 0  # random per actor process start: tells a restart from a resent batch
 
     @property
     def n(self) -> int:
@@ -446,11 +447,11 @@ def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) 
     for name in ("obs", "action", "reward", "next_obs", "episode_returns"):
         if getattr(wire, name) is not None:
             _check_values(getattr(wire, name), name)
-    for name in ("seq", "policy_version"):
+    for name in ("seq", "policy_version", "epoch"):
         if not _is_int(getattr(wire, name)) or not 0 <= getattr(wire, name) <= _INT64_MAX:
             raise ProtocolError(R_FIELD, f"{name} must be an integer in [0, 2^63)")
     msg = {"v": PROTOCOL_VERSION, "t": T_TRANSITIONS, "actor": wire.actor_id, "seq": wire.seq,
-           "policy_version": wire.policy_version, "time": wire.time}
+           "policy_version": wire.policy_version, "time": wire.time, "epoch": wire.epoch}
     for name in ("obs", "action", "reward", "next_obs", "terminated", "truncated"):
         msg[name] = encode_array(getattr(wire, name))
     if wire.has_episodes:
@@ -478,7 +479,7 @@ def _to_wire_dtypes(b: TransitionBatch) -> TransitionBatch:
         reward=cast(b.reward, np.float32), next_obs=cast(b.next_obs, np.float32),
         terminated=cast(b.terminated, np.bool_), truncated=cast(b.truncated, np.bool_),
         episode_returns=cast(b.episode_returns, np.float32), episode_lengths=cast(b.episode_lengths, np.int32),
-        episode_successes=cast(b.episode_successes, np.bool_),
+        episode_successes=cast(b.episode_successes, np.bool_), epoch=int(b.epoch),
     )
 
 
@@ -488,7 +489,7 @@ def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int
     r = _Reader(_unpack(payload, limits), T_TRANSITIONS, limits)
     batch = TransitionBatch(
         actor_id=r.name("actor"), seq=r.integer("seq"), policy_version=r.integer("policy_version"),
-        time=r.number("time", 0.0),
+        time=r.number("time", 0.0), epoch=r.integer("epoch", 0),
         obs=r.array("obs", FLOAT32), action=r.array("action", FLOAT32),
         reward=r.array("reward", FLOAT32), next_obs=r.array("next_obs", FLOAT32),
         terminated=_as_bool(r.array("terminated", FLAGS)), truncated=_as_bool(r.array("truncated", FLAGS)),

@@ -142,7 +142,7 @@ def test_two_actors_stream_without_gaps(cluster):
     assert any(a["paused_s"] > 0 for name, a in s.items() if name != "learner")
     for a in ("actor-a", "actor-b"):
         track = learner["actors"][a]
-        assert track["gaps"] == 0 and track["out_of_order"] == 0
+        assert track["gaps"] == 0 and track["duplicates"] == 0 and track["restarts"] == 0
         # Every batch 0..last_seq arrived: 16 transitions each.
         assert track["ingested"] == 16 * (track["last_seq"] + 1)
 
@@ -169,7 +169,7 @@ def test_actor_kill9_and_restart_rejoins_with_current_weights(cluster):
     assert first["policy_version"] >= 1
     cluster.wait_for(
         "actor-a's new stream ingested",
-        lambda s: s["learner"]["actors"]["actor-a"]["out_of_order"] >= 1 and s["actor-a"]["sent_batches"] >= 3,
+        lambda s: s["learner"]["actors"]["actor-a"]["restarts"] >= 1 and s["actor-a"]["sent_batches"] >= 3,
     )
 
 

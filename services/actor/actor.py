@@ -10,7 +10,9 @@ transitions to the learner over Zenoh.
 - Pauses while the learner's published headroom is used up (the rate limiter that holds the
   update-to-data ratio); when no learner is there it runs on.
 - While no learner listens it keeps a bounded outbox (oldest batches dropped first) and sends it
-  when a learner is back. It never exits on its own: only SIGINT/SIGTERM stop it.
+  when a learner is back. Sent batches stay until the learner acknowledges them (in its
+  progress messages); when the link comes back, unacknowledged ones are sent again, so an
+  outage loses nothing that fits the buffer (the learner drops the duplicates by ``seq``). It never exits on its own: only SIGINT/SIGTERM stop it.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import collections
 import logging
+import os
 import time
 
 import numpy as np
@@ -69,7 +72,10 @@ class ActorService:
         self.sent_batches = 0
         self.dropped_batches = 0
         self.weight_rejects = RejectCounter()
-        self.outbox: collections.deque[bytes] = collections.deque(maxlen=config.actor.max_buffered_batches)
+        self.epoch = int.from_bytes(os.urandom(4), "little")  # tells the learner this is a new process
+        self.outbox: collections.deque[tuple[int, bytes]] = collections.deque()
+        self.unacked: collections.deque[tuple[int, bytes]] = collections.deque()  # sent, not yet ingested
+        self.resent_batches = 0
         self._pending: list[tuple] = []
         self._ended: list[tuple[float, int, bool]] = []
         self._headroom: float | None = None  # from the learner's progress messages
@@ -103,6 +109,10 @@ class ActorService:
             headroom = values.get("headroom")
             self._headroom = None if headroom is None else float(headroom)
             self._sent_since_progress = 0
+            acked = (values.get("acked") or {}).get(self.actor_id)
+            if acked and acked.get("epoch") == self.epoch and acked.get("seq") is not None:
+                while self.unacked and self.unacked[0][0] <= acked["seq"]:
+                    self.unacked.popleft()
         except (ProtocolError, TypeError, ValueError):
             self.weight_rejects.reject("bad_progress")
 
@@ -156,6 +166,7 @@ class ActorService:
         batch = TransitionBatch(
             actor_id=self.actor_id,
             seq=self.seq,
+            epoch=self.epoch,
             policy_version=self.policy_version,
             obs=obs,
             action=action,
@@ -171,10 +182,11 @@ class ActorService:
             log.error("actor %s: dropped an invalid batch: %s", self.actor_id, exc)
             self.dropped_batches += 1
         else:
-            if len(self.outbox) == self.outbox.maxlen:
-                self.dropped_batches += 1
-            self.outbox.append(payload)
+            self.outbox.append((self.seq, payload))
             self.seq += 1
+            while len(self.outbox) + len(self.unacked) > self.config.actor.max_buffered_batches:
+                (self.unacked or self.outbox).popleft()  # the oldest go first
+                self.dropped_batches += 1
         self._pending.clear()
         self._ended.clear()
 
@@ -187,6 +199,8 @@ class ActorService:
             "seq": self.seq,
             "sent_batches": self.sent_batches,
             "buffered_batches": len(self.outbox),
+            "unacked_batches": len(self.unacked),
+            "resent_batches": self.resent_batches,
             "dropped_batches": self.dropped_batches,
             "rejected_weights": self.weight_rejects.total,
             "paused_s": round(self.paused_s, 3),
@@ -203,6 +217,7 @@ class ActorService:
             weights_sub = subscribe_latest(session, keys.weights)
             progress_sub = subscribe_latest(session, keys.progress)
             last_query = -1e9
+            was_present = False
             last_stats = 0.0
             t0 = time.monotonic()
             while not stop.is_set():
@@ -227,11 +242,19 @@ class ActorService:
                     self.paused_s += 0.002
                     continue
                 self.step_all()
-                if self.outbox and has_subscribers(transitions):
-                    while self.outbox:
-                        transitions.put(self.outbox.popleft())
-                        self.sent_batches += 1
-                        self._sent_since_progress += self.config.actor.publish_batch
+                present = has_subscribers(transitions)
+                if present and not was_present and self.unacked:
+                    # A learner (back) after an outage: what it may have missed goes first.
+                    self.resent_batches += len(self.unacked)
+                    self.outbox.extendleft(reversed(self.unacked))
+                    self.unacked.clear()
+                was_present = present
+                while present and self.outbox:
+                    item = self.outbox.popleft()
+                    transitions.put(item[1])
+                    self.unacked.append(item)
+                    self.sent_batches += 1
+                    self._sent_since_progress += self.config.actor.publish_batch
             token.undeclare()
         finally:
             from forcegrasp.transport import close_session
@@ -247,7 +270,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     config = config_from_args(args)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    import os
     import socket
 
     actor_id = args.id or f"actor-{socket.gethostname()}-{os.getpid()}"

@@ -74,9 +74,11 @@ class ActorTrack:
     """What the learner knows about one actor's stream."""
 
     last_seq: int = -1
+    epoch: int | None = None
+    restarts: int = 0
+    duplicates: int = 0
     ingested: int = 0
     gaps: int = 0
-    out_of_order: int = 0
     staleness_sum: float = 0.0
     batches: int = 0
     rate_mark: tuple[float, int] = (0.0, 0)
@@ -158,9 +160,14 @@ class LearnerService:
                 log.warning("dropped a message on %s: %s", key, exc)
             return 0
         track = self.actors[batch.actor_id]
+        if batch.epoch != track.epoch:  # first contact, or a restarted actor counting from 0 again
+            if track.epoch is not None:
+                track.restarts += 1
+            track.epoch, track.last_seq = batch.epoch, batch.seq - 1
         if batch.seq <= track.last_seq:
-            track.out_of_order += 1  # a restarted actor starts again at 0: not a gap
-        elif batch.seq > track.last_seq + 1 and track.last_seq >= 0:
+            track.duplicates += 1  # resent after an outage, already in replay
+            return 0
+        if batch.seq > track.last_seq + 1:
             track.gaps += batch.seq - track.last_seq - 1
         track.last_seq = batch.seq
         track.batches += 1
@@ -211,7 +218,7 @@ class LearnerService:
             rate = (t.ingested - n_prev) / (now - t_prev) if t_prev else 0.0
             t.rate_mark = (now, t.ingested)
             actors[actor_id] = {"ingested": t.ingested, "per_s": rate, "last_seq": t.last_seq, "gaps": t.gaps,
-                                "out_of_order": t.out_of_order,
+                                "restarts": t.restarts, "duplicates": t.duplicates,
                                 "staleness": t.staleness_sum / t.batches if t.batches else 0.0}
         episodes = list(self.recent_episodes)
         return {
@@ -275,7 +282,8 @@ class LearnerService:
                     ckpt_pub.put(encode_checkpoint(Checkpoint(self.ingested, str(path), self.policy_version)))
                 now = time.monotonic()
                 if now - last_progress >= 0.05:
-                    progress = {"ingested": self.ingested, "updates": self.sac.num_updates, "headroom": self.headroom()}
+                    progress = {"ingested": self.ingested, "updates": self.sac.num_updates, "headroom": self.headroom(),
+                                "acked": {a: {"epoch": t.epoch, "seq": t.last_seq} for a, t in self.actors.items()}}
                     progress_pub.put(encode_stats(Stats("learner", "progress", progress)))
                     last_progress = now
                 if now - last_stats >= cfg.stats_every_s:
