@@ -104,7 +104,7 @@ def main(argv=None) -> int:
     parser.add_argument("--obs", type=int, default=77)
     parser.add_argument("--act", type=int, default=7)
     parser.add_argument("--buffer", type=int, default=100_000, help="filled replay size")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: one per core)")
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: usable cores - 1, see configure_threads)")
     parser.add_argument("--no-sb3", action="store_true", help="time ForceGrasp's SAC only")
     args = parser.parse_args(argv)
 

@@ -38,18 +38,26 @@ def select_device(device: str | torch.device = "auto") -> torch.device:
     return torch.device(device)
 
 
-def configure_threads(num_threads: int | None = None) -> int:
-    """Give torch one intra-op thread per core (capped at 8) and a single inter-op thread.
+def usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
-    On the small CPUs this runs on (2 cores) extra threads only add contention with the
-    environment and the network stack; the SAC matrices (256 wide) do not scale past ~8 threads.
+
+def configure_threads(num_threads: int | None = None) -> int:
+    """Set torch's intra-op threads (default: all usable cores but one, at most 8) and one
+    inter-op thread; returns the count in effect.
+
+    Why one core is left free by default: torch's OpenMP team spins at every barrier, so when
+    another busy process (the environment, actors, the network stack) shares its cores, each
+    matmul waits for a descheduled thread. On a loaded 2-core machine that made SAC updates
+    20-40x slower with 2 threads, while 1 thread kept its speed. Pass the core count explicitly
+    on a machine the learner has to itself.
     """
     if num_threads is None:
-        num_threads = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, 8)
+        num_threads = min(max(usable_cores() - 1, 1), 8)
     torch.set_num_threads(max(1, int(num_threads)))
     try:
         torch.set_num_interop_threads(1)
-    except RuntimeError:  # only settable before the first parallel op; harmless to skip later
+    except RuntimeError:  # only settable before the first inter-op parallel work; harmless to skip
         pass
     return torch.get_num_threads()
 
@@ -72,7 +80,7 @@ class Actor(nn.Module):
         """Mean and (clamped) log-std of the pre-squash Gaussian."""
         x = obs
         for layer in self.layers[:-1]:
-            x = F.relu(layer(x))
+            x = F.relu(layer(x), inplace=True)  # in place on the fresh matmul output: less memory traffic
         mean, log_std = self.layers[-1](x).chunk(2, dim=-1)
         return mean, log_std.clamp(self.log_std_min, self.log_std_max)
 

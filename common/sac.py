@@ -13,6 +13,7 @@ stable-baselines3 and CleanRL step the critics before computing the actor loss. 
 optimizer step per update, which is most of why it is fast:
 
 * both critics are one ensemble whose layers are single batched matmuls (weights ``(2, in, out)``);
+* the observation half of the critics' first layer is computed once for Q(s, a) and Q(s, pi(s));
 * the actor loss sees the critics through detached weights, so the backward pass computes dQ/da
   but not the critic weight gradients it would discard;
 * one fused Adam over all parameter groups; one fused ``lerp`` for the Polyak update;
@@ -69,7 +70,7 @@ class SACConfig:
     # Runtime.
     seed: int = 0
     device: str = "auto"  # "auto": CUDA when available, else CPU
-    num_threads: int | None = None  # CPU torch threads; None: one per core (capped at 8)
+    num_threads: int | None = None  # CPU torch threads; None: usable cores - 1 (see configure_threads)
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -77,39 +78,55 @@ class SACConfig:
 
 
 class TwinQ(nn.Module):
-    """`n` independent Q-networks Q_i(s, a) evaluated together.
+    """`n` independent Q-networks Q_i(s, a) evaluated together, as an ensemble.
 
     Layer k of every member is one slice of a ``(n, in, out)`` weight, so each layer of the whole
     ensemble is a single `baddbmm` instead of n small matmuls (and n optimizer parameter sets).
+    The first layer is split into its observation and action parts, W1 [s; a] = W_s s + W_a a,
+    so `embed` (the W_s s + b part) can be computed once and shared by Q(s, a) and Q(s, pi(s)).
     Initialisation matches `nn.Linear` (uniform in +-1/sqrt(fan_in)) so members start independent.
     """
 
     def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), n: int = 2):
         super().__init__()
-        dims = [obs_dim + act_dim, *hidden, 1]
         self.n = n
-        self.weights = nn.ParameterList()
-        self.biases = nn.ParameterList()
-        for d_in, d_out in zip(dims[:-1], dims[1:]):
-            bound = 1.0 / math.sqrt(d_in)
-            self.weights.append(nn.Parameter(torch.empty(n, d_in, d_out).uniform_(-bound, bound)))
-            self.biases.append(nn.Parameter(torch.empty(n, 1, d_out).uniform_(-bound, bound)))
 
-    def forward(self, obs: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
-        """Q-values of every member, shape ``(n, batch)``.
+        def uniform(fan_in, *shape):
+            bound = 1.0 / math.sqrt(fan_in)
+            return nn.Parameter(torch.empty(n, *shape).uniform_(-bound, bound))
+
+        self.obs_weight = uniform(obs_dim + act_dim, obs_dim, hidden[0])
+        self.act_weight = uniform(obs_dim + act_dim, act_dim, hidden[0])
+        self.weights = nn.ParameterList()  # layers after the first
+        self.biases = nn.ParameterList([uniform(obs_dim + act_dim, 1, hidden[0])])  # all layers
+        dims = [*hidden, 1]
+        for d_in, d_out in zip(dims[:-1], dims[1:]):
+            self.weights.append(uniform(d_in, d_in, d_out))
+            self.biases.append(uniform(d_in, 1, d_out))
+
+    def embed(self, obs: torch.Tensor) -> torch.Tensor:
+        """Observation part of every member's first layer (with its bias), ``(n, batch, hidden)``."""
+        return torch.baddbmm(self.biases[0], obs.expand(self.n, -1, -1), self.obs_weight)
+
+    def head(self, embedding: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
+        """Q-values ``(n, batch)`` from `embed`'s output and the actions.
 
         ``frozen=True`` uses detached weights: gradients still flow to `action` (the actor loss
         needs dQ/da) but none are computed for, or accumulated into, the critic's weights.
         """
-        x = torch.cat([obs, action], dim=-1).expand(self.n, -1, -1)
+        own = (lambda t: t.detach()) if frozen else (lambda t: t)
+        # ReLUs run in place on fresh matmul outputs (whose backward does not need them): on a
+        # CPU these 2 x batch x 256 passes over memory cost about as much as a small matmul.
+        x = torch.baddbmm(embedding, action.expand(self.n, -1, -1), own(self.act_weight)).relu_()
         last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            if frozen:
-                w, b = w.detach(), b.detach()
-            x = torch.baddbmm(b, x, w)
+        for i, (w, b) in enumerate(zip(self.weights, self.biases[1:])):
+            x = torch.baddbmm(own(b), x, own(w))
             if i < last:
-                x = torch.relu(x)
+                x = x.relu_()
         return x.squeeze(-1)
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.head(self.embed(obs), action)
 
 
 class Losses(NamedTuple):
@@ -182,13 +199,15 @@ class SAC:
             target = reward + cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_prob)
 
         # 2. Critic loss J_Q = 0.5 E[(Q_i(s, a) - y)^2], summed over both critics.
-        q = self.critic(obs, action)  # (2, B)
+        obs_embedding = self.critic.embed(obs)  # shared with step 3
+        q = self.critic.head(obs_embedding, action)  # (2, B)
         critic_loss = 0.5 * (q - target).square().mean(1).sum()
 
         # 3. Actor loss J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], a = tanh(mean + std eps)
         #    reparameterised; frozen critics pass dQ/da to the actor and take no gradient themselves.
         new_action, log_prob = self.actor.sample(obs, self.generator)
-        actor_loss = (alpha * log_prob - self.critic(obs, new_action, frozen=True).amin(0)).mean()
+        q_new = self.critic.head(obs_embedding.detach(), new_action, frozen=True).amin(0)
+        actor_loss = (alpha * log_prob - q_new).mean()
 
         # 4. Temperature loss J(alpha) = E[-alpha (log pi(a|s) + target_entropy)]: raises alpha
         #    while the policy's entropy is below the target, lowers it above.
@@ -279,12 +298,15 @@ class SAC:
         if missing or unexpected:
             raise ValueError(f"SAC state does not match this learner: missing {missing}, unexpected {unexpected}")
         for k, v in state.items():
-            if tuple(v.shape) != expected[k]:
+            if tuple(v.shape) != expected[k] and k != "generator":
                 raise ValueError(f"SAC state entry {k!r} has shape {tuple(v.shape)}, expected {expected[k]}")
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
         self.num_updates = int(state["num_updates"])
-        self.generator.set_state(state["generator"].cpu())
+        if tuple(state["generator"].shape) == expected["generator"]:
+            self.generator.set_state(state["generator"].cpu())
+        else:  # saved on another device type (CPU and CUDA generators differ): a fresh stream
+            self.generator.manual_seed(self.config.seed + self.num_updates)
         for prefix, module in self._modules():
             module.load_state_dict({k[len(prefix) + 1 :]: v for k, v in state.items() if k.startswith(prefix + ".")})
         slots: dict[int, dict] = {}

@@ -57,8 +57,9 @@ def np_actor(actor: Actor, obs, eps):
 
 def np_critics(critic: TwinQ, obs, act):
     x = np.concatenate([obs, act], 1).astype(np.float64)
+    first = torch.cat([critic.obs_weight, critic.act_weight], 1)  # W1 acting on [s; a]
     return np.stack([
-        np_mlp(x, [w[i].detach().double().numpy() for w in critic.weights],
+        np_mlp(x, [w[i].detach().double().numpy() for w in [first, *critic.weights]],
                [b[i, 0].detach().double().numpy() for b in critic.biases])[:, 0]
         for i in range(2)
     ])
