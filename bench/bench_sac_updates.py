@@ -1,7 +1,9 @@
 """Gradient updates per second: ForceGrasp's SAC against stable-baselines3's SAC, same run.
 
 Both learners get the same synthetic replay data (observation 77, action 7, as in the grasping
-task), batch 256, two 256-unit hidden layers, and the same torch thread setting. Each repetition
+task), batch 256, two 256-unit hidden layers, and their default use of the cores: stable-baselines3
+one torch team over all cores (torch's default), ForceGrasp two concurrent gradient branches of
+half the cores each (`--threads` / `--sb3-threads` override). Each repetition
 times N updates of ours (replay sampling + `SAC.update`, metrics included) and then N of SB3's
 `model.train(gradient_steps=N, batch_size=256)` (its sampling + update + logging), so slow
 phases of a shared machine hit both alike. The table reports the median and best repetition.
@@ -13,6 +15,7 @@ phases of a shared machine hit both alike. The table reports the median and best
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import sys
@@ -44,6 +47,7 @@ def make_ours(args, data):
     rng = np.random.default_rng(1)
 
     def run(n):
+        torch.set_num_threads(args.threads)
         for _ in range(n):
             sac.update(buffer.sample(args.batch, rng))
 
@@ -78,6 +82,7 @@ def make_sb3(args, data):
     rb.full, rb.pos = True, 0
 
     def run(n):
+        torch.set_num_threads(args.sb3_threads)
         model.train(gradient_steps=n, batch_size=args.batch)
 
     return run
@@ -104,19 +109,26 @@ def main(argv=None) -> int:
     parser.add_argument("--obs", type=int, default=77)
     parser.add_argument("--act", type=int, default=7)
     parser.add_argument("--buffer", type=int, default=100_000, help="filled replay size")
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: usable cores - 1, see configure_threads)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads per ForceGrasp gradient branch (default: half the cores, see configure_threads)")
+    parser.add_argument("--sb3-threads", type=int, default=None,
+                        help="torch threads for stable-baselines3 (default: all usable cores, torch's own default)")
     parser.add_argument("--no-sb3", action="store_true", help="time ForceGrasp's SAC only")
     args = parser.parse_args(argv)
 
-    from forcegrasp.policy import configure_threads, select_device
+    from forcegrasp.policy import configure_threads, select_device, usable_cores
 
     device = select_device(args.device)
     args.device = str(device)
-    threads = configure_threads(args.threads)
-    print(f"# {platform.processor() or platform.machine()}, {threads} torch threads, torch {torch.__version__}, "
-          f"device {device}" + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""), flush=True)
+    args.threads = configure_threads(args.threads)
+    args.sb3_threads = args.sb3_threads or usable_cores()
+    print(f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, device {device}"
+          + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""), flush=True)
+    print(f"# torch threads: forcegrasp {args.threads} per gradient branch, stable-baselines3 {args.sb3_threads}", flush=True)
     print(f"# batch {args.batch}, hidden {args.hidden}, obs {args.obs}, act {args.act}, "
           f"{args.reps} x {args.updates} updates each, interleaved", flush=True)
+    print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start "
+          "(other busy processes slow both learners; compare within one run)", flush=True)
 
     data = synthetic_data(args.buffer, args.obs, args.act)
     learners = {"forcegrasp": make_ours(args, data)}
@@ -134,6 +146,7 @@ def main(argv=None) -> int:
             line.append(f"{name.split()[0]} {times[name][-1] * 1e3:.2f} ms")
         print(f"  rep {rep + 1}/{args.reps}: " + ", ".join(line), flush=True)
 
+    print(f"# load average {os.getloadavg()[0]:.2f} at end")
     print()
     print("| learner | ms / update (median) | ms / update (best) | updates / s (median) |")
     print("|---|---:|---:|---:|")

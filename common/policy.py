@@ -43,17 +43,18 @@ def usable_cores() -> int:
 
 
 def configure_threads(num_threads: int | None = None) -> int:
-    """Set torch's intra-op threads (default: all usable cores but one, at most 8) and one
-    inter-op thread; returns the count in effect.
+    """Set torch's intra-op threads (default: half the usable cores, at least 1, at most 8) and
+    one inter-op thread; returns the count in effect.
 
-    Why one core is left free by default: torch's OpenMP team spins at every barrier, so when
-    another busy process (the environment, actors, the network stack) shares its cores, each
-    matmul waits for a descheduled thread. On a loaded 2-core machine that made SAC updates
-    20-40x slower with 2 threads, while 1 thread kept its speed. Pass the core count explicitly
-    on a machine the learner has to itself.
+    Half, because the learner computes its critic and actor gradients on two threads at once,
+    each with its own team of this size. Not all cores in one team, because torch's OpenMP
+    threads wait for each other at the end of every op: when another busy process (environment,
+    actors, network stack) shares the cores, each op waits for a descheduled thread. On a loaded
+    2-core machine that made SAC updates 20-40x slower with one 2-thread team, while two
+    independent 1-thread branches kept their pace.
     """
     if num_threads is None:
-        num_threads = min(max(usable_cores() - 1, 1), 8)
+        num_threads = min(max(usable_cores() // 2, 1), 8)
     torch.set_num_threads(max(1, int(num_threads)))
     try:
         torch.set_num_interop_threads(1)

@@ -191,7 +191,10 @@ def load_policy_bytes(data: bytes, source: str = "policy data") -> tuple[dict[st
     if text is None:
         raise PolicyFileError(f"{source}: a safetensors file without ForceGrasp policy metadata ({METADATA_KEY!r})")
     meta = PolicyMetadata.from_json(text)
-    end = max((max(t.get("data_offsets", (0, 0))) for k, t in header.items() if k != "__metadata__" and isinstance(t, dict)), default=0)
+    try:
+        end = max((int(max(t["data_offsets"])) for k, t in header.items() if k != "__metadata__"), default=0)
+    except (KeyError, TypeError, ValueError):
+        raise PolicyFileError(f"{source}: corrupt (a tensor entry in the header has no valid data_offsets)") from None
     if 8 + header_len + end != len(data):
         raise PolicyFileError(
             f"{source}: truncated or corrupt (tensor data should be {end} bytes, found {len(data) - 8 - header_len})"

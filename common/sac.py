@@ -9,14 +9,16 @@ The actor network lives in `forcegrasp.policy` because it is also what gets depl
 Update order: the three losses (critics, actor, temperature) are computed from the same
 parameter values and applied together, as in the authors' original TensorFlow 1 code (softlearning
 ran the Q, policy and temperature train ops in one ``session.run``); their later TF2 code,
-stable-baselines3 and CleanRL step the critics before computing the actor loss. The simultaneous form needs one backward pass and one
-optimizer step per update, which is most of why it is fast:
+stable-baselines3 and CleanRL step the critics before computing the actor loss. Computed from the
+same parameters, the critic gradients and the actor/temperature gradients are independent, which
+is most of why this is fast:
 
+* on a CPU with two or more cores the two gradient computations run concurrently, each on its
+  own thread (one OpenMP team each, no cross-core barriers inside a matmul);
+* one fused Adam step over all parameter groups; one fused ``lerp`` for the Polyak update;
 * both critics are one ensemble whose layers are single batched matmuls (weights ``(2, in, out)``);
-* the observation half of the critics' first layer is computed once for Q(s, a) and Q(s, pi(s));
-* the actor loss sees the critics through detached weights, so the backward pass computes dQ/da
-  but not the critic weight gradients it would discard;
-* one fused Adam over all parameter groups; one fused ``lerp`` for the Polyak update;
+* the actor loss sees the critics through detached weights, so its backward pass computes dQ/da
+  but none of the critic weight gradients it would discard;
 * metrics leave the device once per update, not once per value.
 """
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import NamedTuple
@@ -34,7 +37,7 @@ import safetensors.torch
 import torch
 from torch import nn
 
-from forcegrasp.policy import Actor, Policy, configure_threads, select_device
+from forcegrasp.policy import Actor, Policy, configure_threads, select_device, usable_cores
 from forcegrasp.policy_file import PolicyMetadata, atomic_write
 from forcegrasp.replay import Batch, ReplayBuffer
 
@@ -70,7 +73,8 @@ class SACConfig:
     # Runtime.
     seed: int = 0
     device: str = "auto"  # "auto": CUDA when available, else CPU
-    num_threads: int | None = None  # CPU torch threads; None: usable cores - 1 (see configure_threads)
+    num_threads: int | None = None  # CPU intra-op threads; None: half the usable cores (configure_threads)
+    parallel_branches: bool | None = None  # critic and actor gradients in two threads; None: CPU, >= 2 cores
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
@@ -82,8 +86,9 @@ class TwinQ(nn.Module):
 
     Layer k of every member is one slice of a ``(n, in, out)`` weight, so each layer of the whole
     ensemble is a single `baddbmm` instead of n small matmuls (and n optimizer parameter sets).
-    The first layer is split into its observation and action parts, W1 [s; a] = W_s s + W_a a,
-    so `embed` (the W_s s + b part) can be computed once and shared by Q(s, a) and Q(s, pi(s)).
+    The first layer is split into its observation and action parts, W1 [s; a] = W_s s + W_a a:
+    the actor loss needs dQ/da only, so it evaluates `head` on a no-grad `embed` (the W_s s + b
+    part) and back-propagates into the action columns alone.
     Initialisation matches `nn.Linear` (uniform in +-1/sqrt(fan_in)) so members start independent.
     """
 
@@ -129,18 +134,20 @@ class TwinQ(nn.Module):
         return self.head(self.embed(obs), action)
 
 
-class Losses(NamedTuple):
-    critic_loss: torch.Tensor  # J_Q summed over both critics (grad to the critics only)
-    actor_loss: torch.Tensor  # J_pi (grad to the actor only)
-    alpha_loss: torch.Tensor  # J(alpha) (grad to log_alpha only; zero when alpha is fixed)
+class CriticTerms(NamedTuple):
+    loss: torch.Tensor  # J_Q summed over both critics (gradient reaches the critics only)
     q: torch.Tensor  # (2, B) Q_i(s, a), detached
     target: torch.Tensor  # (B,) soft Bellman target y
+
+
+class ActorTerms(NamedTuple):
+    actor_loss: torch.Tensor  # J_pi (gradient reaches the actor only)
+    alpha_loss: torch.Tensor  # J(alpha) (reaches log_alpha only; zero when alpha is fixed)
     log_prob: torch.Tensor  # (B,) log pi(a|s) of the fresh actions, detached
-    alpha: torch.Tensor  # the temperature used in these losses
 
 
 class SAC:
-    """The learner: owns the actor, the critics, their targets, the optimizers and alpha.
+    """The learner: owns the actor, the critics, their targets, the optimizer and alpha.
 
     It does not own the replay buffer or the environment; callers pass minibatches to `update`.
     """
@@ -163,8 +170,8 @@ class SAC:
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), device=self.device, requires_grad=cfg.autotune_alpha)
         self.target_entropy = -float(act_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
 
-        # One Adam over three parameter groups: the losses below touch disjoint parameters, so a
-        # single backward of their sum and a single (fused) step update all of them at once.
+        # One Adam over three parameter groups: the losses touch disjoint parameters, so their
+        # gradients can be computed separately and applied by a single (fused) step.
         groups = [{"params": list(self.critic.parameters()), "lr": cfg.critic_lr, "name": "critic"},
                   {"params": list(self.actor.parameters()), "lr": cfg.actor_lr, "name": "actor"}]
         if cfg.autotune_alpha:
@@ -174,8 +181,14 @@ class SAC:
         self.critic_params = groups[0]["params"]
         self.target_params = list(self.critic_target.parameters())
 
-        self.generator = torch.Generator(device=self.device)
-        self.generator.manual_seed(cfg.seed)
+        # Separate noise streams for the two gradient computations keep results identical
+        # whether they run one after the other or concurrently.
+        self.target_generator = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.policy_generator = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        parallel = cfg.parallel_branches
+        if parallel is None:
+            parallel = self.device.type == "cpu" and usable_cores() >= 2
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="sac-actor-grads") if parallel else None
         self.num_updates = 0
 
     @property
@@ -183,40 +196,38 @@ class SAC:
         return float(self.log_alpha.detach().exp())
 
     # -- the gradient step ----------------------------------------------------------------------
-    def losses(self, obs, action, reward, next_obs, terminated) -> Losses:
-        """The three SAC objectives on one minibatch of tensors (no parameter is changed).
-
-        All three are computed from the same parameter values (see the module docstring).
-        """
-        cfg = self.config
-        alpha = self.log_alpha.detach().exp()
-
-        # 1. Soft Bellman target with the smaller target Q (clipped double-Q) and a fresh action:
-        #    y = r + gamma (1 - done) (min_i Q'_i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s').
+    def critic_terms(self, obs, action, reward, next_obs, terminated, alpha) -> CriticTerms:
+        """Critic objective on one minibatch of tensors; `alpha` is the (detached) temperature."""
+        # Soft Bellman target with the smaller target Q (clipped double-Q) and a fresh action:
+        # y = r + gamma (1 - done) (min_i Q'_i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s').
         with torch.no_grad():
-            next_action, next_log_prob = self.actor.sample(next_obs, self.generator)
+            next_action, next_log_prob = self.actor.sample(next_obs, self.target_generator)
             next_q = self.critic_target(next_obs, next_action).amin(0)
-            target = reward + cfg.gamma * (1.0 - terminated) * (next_q - alpha * next_log_prob)
+            target = reward + self.config.gamma * (1.0 - terminated) * (next_q - alpha * next_log_prob)
+        # J_Q = 0.5 E[(Q_i(s, a) - y)^2], summed over both critics.
+        q = self.critic(obs, action)  # (2, B)
+        loss = 0.5 * (q - target).square().mean(1).sum()
+        return CriticTerms(loss, q.detach(), target)
 
-        # 2. Critic loss J_Q = 0.5 E[(Q_i(s, a) - y)^2], summed over both critics.
-        obs_embedding = self.critic.embed(obs)  # shared with step 3
-        q = self.critic.head(obs_embedding, action)  # (2, B)
-        critic_loss = 0.5 * (q - target).square().mean(1).sum()
-
-        # 3. Actor loss J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], a = tanh(mean + std eps)
-        #    reparameterised; frozen critics pass dQ/da to the actor and take no gradient themselves.
-        new_action, log_prob = self.actor.sample(obs, self.generator)
-        q_new = self.critic.head(obs_embedding.detach(), new_action, frozen=True).amin(0)
+    def actor_terms(self, obs, alpha) -> ActorTerms:
+        """Actor and temperature objectives on one minibatch of observations."""
+        # J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], a = tanh(mean + std eps) reparameterised.
+        # The critics are frozen (detached weights): they pass dQ/da to the actor and take no
+        # gradient; starting from a no-grad observation embedding, only the 7 action columns of
+        # their first layer are back-propagated.
+        new_action, log_prob = self.actor.sample(obs, self.policy_generator)
+        with torch.no_grad():
+            embedding = self.critic.embed(obs)
+        q_new = self.critic.head(embedding, new_action, frozen=True).amin(0)
         actor_loss = (alpha * log_prob - q_new).mean()
-
-        # 4. Temperature loss J(alpha) = E[-alpha (log pi(a|s) + target_entropy)]: raises alpha
-        #    while the policy's entropy is below the target, lowers it above.
+        # J(alpha) = E[-alpha (log pi(a|s) + target_entropy)]: raises alpha while the policy's
+        # entropy is below the target and lowers it above.
         log_prob = log_prob.detach()
-        if cfg.autotune_alpha:
+        if self.config.autotune_alpha:
             alpha_loss = -(self.log_alpha.exp() * (log_prob + self.target_entropy)).mean()
         else:
             alpha_loss = torch.zeros((), device=self.device)
-        return Losses(critic_loss, actor_loss, alpha_loss, q.detach(), target, log_prob, alpha)
+        return ActorTerms(actor_loss, alpha_loss, log_prob)
 
     def update(self, batch, metrics: bool = True) -> dict[str, float]:
         """One gradient step on critics, actor and temperature, then the target-critic update.
@@ -224,15 +235,33 @@ class SAC:
         `batch` is a `forcegrasp.replay.Batch` (or a dict with its fields) of arrays or tensors.
         Returns float metrics; ``metrics=False`` skips their (single) device-to-host copy.
         """
-        out = self.losses(*self._tensors(batch))
+        obs, action, reward, next_obs, terminated = self._tensors(batch)
+        alpha = self.log_alpha.detach().exp()
+        threads = torch.get_num_threads()
 
-        # 5. Each loss reaches only its own parameters, so one backward of the sum and one Adam
-        #    step over all parameter groups apply the three gradient steps at once.
+        def critic_grads() -> CriticTerms:
+            terms = self.critic_terms(obs, action, reward, next_obs, terminated, alpha)
+            terms.loss.backward()
+            return terms
+
+        def actor_grads() -> ActorTerms:
+            if torch.get_num_threads() != threads:  # a worker thread keeps the count it started with
+                torch.set_num_threads(threads)
+            terms = self.actor_terms(obs, alpha)
+            (terms.actor_loss + terms.alpha_loss).backward()
+            return terms
+
+        # The two gradient computations read the same parameters and write disjoint .grad
+        # fields, so on a multi-core CPU they run concurrently (torch releases the GIL in ops).
         self.optimizer.zero_grad(set_to_none=True)
-        (out.critic_loss + out.actor_loss + out.alpha_loss).backward()
+        if self._worker is None:
+            critic, actor = critic_grads(), actor_grads()
+        else:
+            pending = self._worker.submit(actor_grads)
+            critic, actor = critic_grads(), pending.result()
         self.optimizer.step()
 
-        # 6. Target critics: theta' <- theta' + tau (theta - theta'), one fused op over all tensors.
+        # Target critics: theta' <- theta' + tau (theta - theta'), one fused op over all tensors.
         self.num_updates += 1
         if self.num_updates % self.config.target_update_interval == 0:
             with torch.no_grad():
@@ -241,8 +270,8 @@ class SAC:
         if not metrics:
             return {}
         values = torch.stack([
-            out.critic_loss.detach(), out.actor_loss.detach(), out.alpha_loss.detach(), out.alpha,
-            -out.log_prob.mean(), out.q[0].mean(), out.q[1].mean(), out.target.mean(),
+            critic.loss.detach(), actor.actor_loss.detach(), actor.alpha_loss.detach(), alpha,
+            -actor.log_prob.mean(), critic.q[0].mean(), critic.q[1].mean(), critic.target.mean(),
         ]).tolist()  # the only device-to-host transfer of the step
         return dict(zip(METRICS, values))
 
@@ -261,7 +290,7 @@ class SAC:
         with torch.inference_mode():
             x = torch.as_tensor(obs, device=self.device)
             x = x if x.ndim == 2 else x.unsqueeze(0)
-            a = self.actor.deterministic(x) if deterministic else self.actor.sample(x, self.generator)[0]
+            a = self.actor.deterministic(x) if deterministic else self.actor.sample(x, self.policy_generator)[0]
             a = a.cpu().numpy()
         return a if obs.ndim == 2 else a[0]
 
@@ -281,7 +310,8 @@ class SAC:
         from). Adam's hyper-parameters come from the config, so they are not repeated here.
         """
         state = {"log_alpha": self.log_alpha.detach(), "num_updates": torch.tensor(self.num_updates, dtype=torch.int64),
-                 "generator": self.generator.get_state()}
+                 "target_generator": self.target_generator.get_state(),
+                 "policy_generator": self.policy_generator.get_state()}
         for prefix, module in self._modules():
             state.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
         saved = self.optimizer.state_dict()["state"]
@@ -298,15 +328,16 @@ class SAC:
         if missing or unexpected:
             raise ValueError(f"SAC state does not match this learner: missing {missing}, unexpected {unexpected}")
         for k, v in state.items():
-            if tuple(v.shape) != expected[k] and k != "generator":
+            if tuple(v.shape) != expected[k] and not k.endswith("_generator"):
                 raise ValueError(f"SAC state entry {k!r} has shape {tuple(v.shape)}, expected {expected[k]}")
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
         self.num_updates = int(state["num_updates"])
-        if tuple(state["generator"].shape) == expected["generator"]:
-            self.generator.set_state(state["generator"].cpu())
-        else:  # saved on another device type (CPU and CUDA generators differ): a fresh stream
-            self.generator.manual_seed(self.config.seed + self.num_updates)
+        for offset, name in enumerate(("target_generator", "policy_generator")):
+            if tuple(state[name].shape) == expected[name]:
+                getattr(self, name).set_state(state[name].cpu())
+            else:  # saved on another device type (CPU and CUDA generators differ): fresh stream
+                getattr(self, name).manual_seed(self.config.seed + offset + 2 * self.num_updates)
         for prefix, module in self._modules():
             module.load_state_dict({k[len(prefix) + 1 :]: v for k, v in state.items() if k.startswith(prefix + ".")})
         slots: dict[int, dict] = {}

@@ -28,11 +28,11 @@ def random_batch(seed=0, n=B, obs=OBS, act=ACT) -> Batch:
                  np.array([0, 1, 0, 0, 1][:n] + [0] * max(0, n - 5), np.float32))
 
 
-def upcoming_noise(sac: SAC, *shapes):
-    """The Gaussian noise `sac` will draw next, from a copy of its generator."""
+def upcoming_noise(generator: torch.Generator, shape):
+    """The Gaussian noise `generator` will produce next, drawn from a copy of it."""
     g = torch.Generator()
-    g.set_state(sac.generator.get_state())
-    return [torch.randn(s, generator=g).double().numpy() for s in shapes]
+    g.set_state(generator.get_state())
+    return torch.randn(shape, generator=g).double().numpy()
 
 
 # -- independent float64 numpy reference ----------------------------------------------------------
@@ -75,8 +75,11 @@ def test_losses_match_an_independent_float64_computation():
     with torch.no_grad():  # make target and online critics differ, as they do during training
         for p in sac.critic_target.parameters():
             p.add_(0.3 * torch.randn_like(p))
-    eps_next, eps_new = upcoming_noise(sac, (B, ACT), (B, ACT))
-    out = sac.losses(*tensors(batch))
+    eps_next = upcoming_noise(sac.target_generator, (B, ACT))
+    eps_new = upcoming_noise(sac.policy_generator, (B, ACT))
+    alpha_t = sac.log_alpha.detach().exp()
+    critic = sac.critic_terms(*tensors(batch), alpha_t)
+    actor = sac.actor_terms(torch.as_tensor(batch.obs), alpha_t)
 
     alpha, gamma = 0.7, 0.9
     next_a, next_logp = np_actor(sac.actor, batch.next_obs, eps_next)
@@ -88,12 +91,12 @@ def test_losses_match_an_independent_float64_computation():
     actor_loss = (alpha * logp - np_critics(sac.critic, batch.obs, new_a).min(0)).mean()
     alpha_loss = -(alpha * (logp - ACT)).mean()  # target entropy -|A|
 
-    np.testing.assert_allclose(out.target.numpy(), y, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(out.q.numpy(), q, rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(out.log_prob.numpy(), logp, rtol=1e-5, atol=1e-5)
-    np.testing.assert_allclose(float(out.critic_loss.detach()), critic_loss, rtol=1e-5)
-    np.testing.assert_allclose(float(out.actor_loss.detach()), actor_loss, rtol=1e-5)
-    np.testing.assert_allclose(float(out.alpha_loss.detach()), alpha_loss, rtol=1e-5)
+    np.testing.assert_allclose(critic.target.numpy(), y, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(critic.q.numpy(), q, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(actor.log_prob.numpy(), logp, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(float(critic.loss.detach()), critic_loss, rtol=1e-5)
+    np.testing.assert_allclose(float(actor.actor_loss.detach()), actor_loss, rtol=1e-5)
+    np.testing.assert_allclose(float(actor.alpha_loss.detach()), alpha_loss, rtol=1e-5)
 
 
 def test_critic_target_by_hand():
@@ -104,9 +107,9 @@ def test_critic_target_by_hand():
             p.zero_()
         sac.actor.layers[-1].bias.copy_(torch.tensor([0.2, -0.4, math.log(0.5), math.log(0.3)]))  # mean, log-std
         sac.critic_target.biases[-1].copy_(torch.tensor([[[1.5]], [[-2.0]]]))  # Q'_1 = 1.5, Q'_2 = -2
-    (eps,) = upcoming_noise(sac, (B, ACT))
+    eps = upcoming_noise(sac.target_generator, (B, ACT))
     batch = random_batch()
-    target = sac.losses(*tensors(batch)).target.numpy()
+    target = sac.critic_terms(*tensors(batch), sac.log_alpha.detach().exp()).target.numpy()
 
     expected = []
     for i in range(B):
@@ -185,27 +188,43 @@ def test_target_update_interval():
     assert not any(torch.equal(a, b) for a, b in zip(before, sac.critic_target.parameters()))
 
 
-def test_each_loss_only_reaches_its_own_parameters():
-    """The single backward of the summed losses must equal three separate backward passes."""
-    sac = tiny_sac()
-    state = sac.generator.get_state()
-    out = sac.losses(*tensors(random_batch()))
-    critic = torch.autograd.grad(out.critic_loss, list(sac.critic.parameters()))
-    actor = torch.autograd.grad(out.actor_loss, list(sac.actor.parameters()), retain_graph=True)
-    alpha = torch.autograd.grad(out.alpha_loss, [sac.log_alpha])
+@pytest.mark.parametrize("parallel", [False, True])
+def test_update_gradients_are_each_losss_own(parallel):
+    """update() (serial or in two threads) must apply exactly each loss's gradient to its own
+    parameters: the critic loss to the critics, the actor loss to the actor, J(alpha) to alpha."""
+    sac = tiny_sac(parallel_branches=parallel)
+    assert (sac._worker is not None) == parallel
+    batch = random_batch()
+    states = sac.target_generator.get_state(), sac.policy_generator.get_state()
+    alpha = sac.log_alpha.detach().exp()
+    critic = sac.critic_terms(*tensors(batch), alpha)
+    actor = sac.actor_terms(torch.as_tensor(batch.obs), alpha)
+    critic_params, actor_params = list(sac.critic.parameters()), list(sac.actor.parameters())
     # the actor loss must not push the critics, nor the critic loss the actor
-    assert all(g is None for g in torch.autograd.grad(out.actor_loss, list(sac.critic.parameters()), allow_unused=True))
-    assert all(g is None for g in torch.autograd.grad(out.critic_loss, list(sac.actor.parameters()), allow_unused=True,
+    assert all(g is None for g in torch.autograd.grad(actor.actor_loss, critic_params, allow_unused=True,
                                                        retain_graph=True))
+    assert all(g is None for g in torch.autograd.grad(critic.loss, actor_params, allow_unused=True,
+                                                       retain_graph=True))
+    expected_critic = torch.autograd.grad(critic.loss, critic_params)
+    expected_actor = torch.autograd.grad(actor.actor_loss, actor_params)
+    expected_alpha = torch.autograd.grad(actor.alpha_loss, [sac.log_alpha])
 
-    sac.generator.set_state(state)
-    out = sac.losses(*tensors(random_batch()))
-    (out.critic_loss + out.actor_loss + out.alpha_loss).backward()
-    for g, p in zip(critic, sac.critic.parameters()):
+    sac.target_generator.set_state(states[0])
+    sac.policy_generator.set_state(states[1])
+    sac.update(batch)  # leaves the gradients it applied in .grad
+    for g, p in zip(expected_critic, critic_params):
         torch.testing.assert_close(p.grad, g)
-    for g, p in zip(actor, sac.actor.parameters()):
+    for g, p in zip(expected_actor, actor_params):
         torch.testing.assert_close(p.grad, g)
-    torch.testing.assert_close(sac.log_alpha.grad, alpha[0])
+    torch.testing.assert_close(sac.log_alpha.grad, expected_alpha[0])
+
+
+def test_parallel_and_serial_updates_are_identical():
+    serial, parallel = tiny_sac(parallel_branches=False), tiny_sac(parallel_branches=True)
+    for i in range(5):
+        assert serial.update(random_batch(i)) == parallel.update(random_batch(i))
+    for k, v in serial.state_dict().items():
+        assert torch.equal(v, parallel.state_dict()[k]), k
 
 
 @pytest.mark.parametrize("target_entropy, direction", [(50.0, 1), (-50.0, -1)])
