@@ -1,0 +1,3 @@
+from forcegrasp.services.evaluator.evaluator import main
+
+raise SystemExit(main())

@@ -1,0 +1,512 @@
+"""Evaluator service: follows the learner's checkpoints, scores them on fixed placements, keeps the
+top k on disk, re-ranks them on the final-ranking placements, logs every episode to MCAP and
+serves the best policy (Zenoh queryable and read-only HTTP).
+
+- Checkpoints are found two ways: announcements on ``forcegrasp/<run>/checkpoints`` and a scan
+  of ``<output_dir>/<run>/checkpoints/`` at start and every ``--scan-every`` seconds, so a
+  restarted evaluator or a missed message loses nothing. Announced paths are only hints: files
+  are read from this run's own checkpoints folder, by their ``policy-<step>.safetensors`` name.
+- A checkpoint is evaluated if it is at least ``evaluator.eval_every`` learner steps after the
+  last one evaluated (oldest first); ``evaluator.eval_episodes`` deterministic episodes on
+  placements fixed by ``run.seed``; the score is the mean return (success rate recorded too).
+- Top k (``evaluator.top_k``) in ``<output_dir>/<run>/evaluator/top/`` (see ``topk.py`` for the
+  crash-safety rules); a newcomer is scored on ``evaluator.final_rank_episodes`` ranking
+  placements and the best member by that score is marked in the index and served.
+- Episodes go to ``<output_dir>/<run>/evaluator/episodes/<step>/{eval,rank}-<i>.mcap``.
+- Stats on ``forcegrasp/<run>/stats/evaluator/<id>``, liveliness token, SIGINT/SIGTERM stop it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import fcntl
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from forcegrasp.config import Config, add_config_arguments, config_from_args
+from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
+from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
+from forcegrasp.services.evaluator.endpoint import (
+    BestPolicy,
+    EvaluatorHTTPServer,
+    Snapshot,
+    declare_best_queryable,
+)
+from forcegrasp.services.evaluator.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
+from forcegrasp.services.evaluator.topk import MAX_POLICY_BYTES, Member, TopK, policy_file_name, sha256, step_of
+
+log = logging.getLogger("forcegrasp.evaluator")
+
+#: ``score_fn(policy, weights, metadata, placements, kind, step) -> EvalResult``; kind is "eval" or "rank".
+ScoreFn = Callable[..., EvalResult]
+
+
+class CheckpointRejected(Exception):
+    """A checkpoint file that cannot be evaluated (corrupt, other task, other architecture)."""
+
+
+@dataclass
+class Counters:
+    evaluations: int = 0
+    rank_evaluations: int = 0
+    episodes: int = 0
+    episode_seconds: float = 0.0
+    entered_top: int = 0
+    skipped: int = 0
+    bad_checkpoints: int = 0
+    missing_files: int = 0
+    queries: int = 0
+    bad_queries: int = 0
+
+
+class EvaluatorService:
+    def __init__(self, config: Config, instance: str = "0", *, score_fn: ScoreFn | None = None,
+                 log_episodes: bool = True, scan_every: float = 10.0, stats_every: float = 2.0,
+                 mcap_backend: str = "auto"):
+        self.config = config
+        self.instance = instance
+        self.keys = Keys(config.run.name)
+        self.run_dir = Path(config.run.output_dir) / config.run.name
+        self.checkpoint_dir = self.run_dir / "checkpoints"
+        self.dir = self.run_dir / "evaluator"
+        self.episodes_dir = self.dir / "episodes"
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self._lock_file = self._take_lock()
+        ev = config.evaluator
+        self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval")
+        self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank")
+        self.top = TopK(self.dir / "top", ev.top_k, run=config.run.name)
+        self.top.crash_hook = _crash_hook_from_env()
+        self.log_episodes = log_episodes
+        self.mcap_backend = mcap_backend
+        self.scan_every = scan_every
+        self.stats_every = stats_every
+        self.env = None
+        self._score_fn = score_fn or self._rollouts
+        self.counters = Counters()
+        self.rejects = RejectCounter()
+        self.pending: dict[int, Path] = {}
+        self.failed: set[int] = set()
+        self.announcements: queue.Queue = queue.Queue(maxsize=4096)
+        self.snapshot = Snapshot.build(config.run.name, None, self.top.to_json(with_history=False))
+        self.http: EvaluatorHTTPServer | None = None
+        self.current: int | None = None
+        self._stop = threading.Event()
+        self._t0 = time.monotonic()
+
+    # ------------------------------------------------------------------ start-up
+    def _take_lock(self):
+        """One evaluator per run folder: a second one would interleave writes to the same top k.
+        ``flock`` is released by the kernel when the process dies, even by SIGKILL."""
+        f = open(self.dir / "lock", "a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            raise SystemExit(f"error: another evaluator is running for run {self.config.run.name!r} "
+                             f"(it holds {self.dir / 'lock'})") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        return f
+
+    def close(self) -> None:
+        """Release the run's evaluator lock (also released by the kernel when the process dies)."""
+        if self._lock_file is not None and not self._lock_file.closed:
+            self._lock_file.close()
+        if self.env is not None:
+            self.env.close()
+
+    def __enter__(self) -> "EvaluatorService":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def protocol(self) -> dict:
+        """What a score depends on besides the policy: a change invalidates stored scores."""
+        e, ev = self.config.env, self.config.evaluator
+        return {"object": e.object, "force_feedback": e.force_feedback, "mass_scale": e.mass_scale,
+                "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
+                "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
+                "final_rank_episodes": ev.final_rank_episodes}
+
+    def load(self) -> None:
+        """Reload the top k (verifying every file), re-score it if the protocol changed, scan."""
+        if self.top.load(self.protocol()):
+            log.warning("evaluation settings changed since the top k was scored: re-scoring its %d members",
+                        len(self.top.members))
+            self._rescore_members()
+        self.refresh_snapshot()
+        best = self.top.best
+        log.info("top %d: %d members, best %s, last evaluated step %s", self.top.k, len(self.top.members),
+                 f"{best.file} ({best.rank_score:.2f})" if best else "none", self.top.last_step)
+        self.scan()
+
+    # ------------------------------------------------------------------ finding checkpoints
+    def scan(self) -> int:
+        """Add every ``policy-<step>.safetensors`` of the checkpoints folder not evaluated yet."""
+        found = 0
+        try:
+            entries = list(os.scandir(self.checkpoint_dir))
+        except FileNotFoundError:
+            return 0
+        for entry in entries:
+            step = step_of(entry.name)
+            if step is not None and self._wanted(step) and step not in self.pending:
+                self.pending[step] = Path(entry.path)
+                found += 1
+        return found
+
+    def on_announcement(self, payload: bytes) -> None:
+        """Zenoh callback: only a queue put (decoding happens in the service loop)."""
+        try:
+            self.announcements.put_nowait(payload)
+        except queue.Full:
+            self.rejects.reject("queue_full")
+
+    def _drain_announcements(self) -> None:
+        while True:
+            try:
+                payload = self.announcements.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                ckpt = decode_checkpoint(payload)
+                name = os.path.basename(ckpt.path)
+                step = step_of(name)
+                if step is None:
+                    raise ProtocolError("bad_field", f"path {ckpt.path!r} is not a policy-<step>.safetensors file")
+                if step != ckpt.step:
+                    raise ProtocolError("bad_field", f"path says step {step}, message says {ckpt.step}")
+            except ProtocolError as exc:
+                if self.rejects.reject(exc) <= 5:
+                    log.warning("dropped a checkpoint announcement: %s", exc)
+                continue
+            self.rejects.accept()
+            if not self._wanted(step) or step in self.pending:
+                continue
+            # The learner's path may be on another machine: the file is read from our own folder.
+            path = self.checkpoint_dir / name
+            if path.is_file():
+                self.pending[step] = path
+            else:
+                self.counters.missing_files += 1
+                log.warning("announced checkpoint %s is not in %s (does this evaluator share the learner's "
+                            "output_dir?); the next scan will pick it up if it appears", name, self.checkpoint_dir)
+
+    def _wanted(self, step: int) -> bool:
+        last = self.top.last_step
+        return step not in self.failed and (last is None or step >= last + self.config.evaluator.eval_every)
+
+    def next_checkpoint(self) -> tuple[int, Path] | None:
+        """The oldest pending checkpoint far enough after the last evaluated one."""
+        for step in sorted(self.pending):
+            path = self.pending.pop(step)
+            if self._wanted(step):
+                return step, path
+            self.counters.skipped += 1
+        return None
+
+    # ------------------------------------------------------------------ evaluating
+    def _ensure_env(self):
+        if self.env is None:
+            from forcegrasp.runtime import make_env
+
+            self.env = make_env(self.config)
+        return self.env
+
+    def _rollouts(self, policy, weights, meta: PolicyMetadata, places: list[Placement], kind: str,
+                  step: int) -> EvalResult:
+        env = self._ensure_env()
+        log_dir = None
+        if self.log_episodes:
+            log_dir = self.episodes_dir / f"{step:09d}"
+            log_dir.mkdir(parents=True, exist_ok=True)
+            for leftover in log_dir.glob(f".{kind}-*.tmp"):
+                leftover.unlink(missing_ok=True)
+        meta_fields = {"run": self.config.run.name, "checkpoint_step": step, "policy_version":
+                       meta.extra.get("policy_version", 0), "checkpoint": policy_file_name(step)}
+
+        def counted(_result) -> None:
+            self.counters.episodes += 1
+
+        return evaluate(env, policy, places, log_dir=log_dir, log_prefix=kind, log_metadata=meta_fields,
+                        should_stop=self._stop.is_set, on_episode=counted, logger_backend=self.mcap_backend)
+
+    def _check(self, data: bytes, source: str):
+        """Parse and check a checkpoint against this run's task; returns (weights, metadata)."""
+        try:
+            weights, meta = load_policy_bytes(data, source=source)
+        except PolicyFileError as exc:
+            raise CheckpointRejected(str(exc)) from None
+        env = self.config.env
+        obs_dim = 77 if env.force_feedback else 53
+        if meta.obs_dim != obs_dim or meta.act_dim != 7:
+            raise CheckpointRejected(f"{source}: policy maps {meta.obs_dim} -> {meta.act_dim}, this run's env "
+                                     f"needs {obs_dim} -> 7 (force_feedback={env.force_feedback})")
+        if meta.object_name and meta.object_name != env.object:
+            raise CheckpointRejected(f"{source}: policy is for object {meta.object_name!r}, this run is {env.object!r}")
+        return weights, meta
+
+    def _policy(self, weights, meta):
+        from forcegrasp.policy import Policy
+
+        return Policy.from_weights(weights, meta, seed=0)
+
+    def process(self, step: int, path: Path) -> Member | None:
+        """Evaluate one checkpoint and update the top k; returns its Member if it entered."""
+        self.current = step
+        try:
+            try:
+                size = path.stat().st_size
+                if size > MAX_POLICY_BYTES:
+                    raise CheckpointRejected(f"{path}: {size} bytes is more than any policy file")
+                data = path.read_bytes()
+            except FileNotFoundError:
+                log.warning("checkpoint %s vanished before it was evaluated", path)
+                self.counters.missing_files += 1
+                return None
+            except OSError as exc:
+                raise CheckpointRejected(f"{path}: cannot read: {exc}") from None
+            weights, meta = self._check(data, str(path))
+            policy = self._policy(weights, meta)
+            t0 = time.perf_counter()
+            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", step)
+            self.counters.episode_seconds += time.perf_counter() - t0
+            log.info("step %d: score %.2f, success %.0f%% over %d episodes (%.1f s)", step, result.score,
+                     100 * result.success_rate, result.episodes, time.perf_counter() - t0)
+            self.top.record(step, result.score, result.success_rate, result.episodes)
+            member = None
+            if self.top.would_enter(result.score, step):
+                member, blob = self._rank(step, weights, meta, policy, result)
+                evicted = self.top.admit(member, blob)
+                self.counters.entered_top += 1
+                log.info("step %d enters the top %d (rank score %.2f)%s; best is now %s", step, self.top.k,
+                         member.rank_score, f", {', '.join(m.file for m in evicted)} leaves" if evicted else "",
+                         self.top.best.file)
+            self.top.commit()
+            self.refresh_snapshot()
+            self.counters.evaluations += 1  # counted once on disk: stats never run ahead of the index
+            return member
+        except CheckpointRejected as exc:
+            self.failed.add(step)
+            self.counters.bad_checkpoints += 1
+            log.error("checkpoint %d rejected: %s", step, exc)
+            return None
+        finally:
+            self.current = None
+
+    def _rank(self, step: int, weights, meta: PolicyMetadata, policy, result: EvalResult) -> tuple[Member, bytes]:
+        """Score a top-k newcomer on the ranking placements; its file carries the scores."""
+        t0 = time.perf_counter()
+        rank = self._score_fn(policy, weights, meta, self.rank_places, "rank", step)
+        self.counters.rank_evaluations += 1
+        self.counters.episode_seconds += time.perf_counter() - t0
+        meta = dataclasses.replace(meta, eval_score=rank.score, extra={**meta.extra, "evaluation": {
+            "step": step, "rank_score": rank.score, "rank_success_rate": rank.success_rate,
+            "rank_episodes": rank.episodes, "eval_score": result.score, "eval_success_rate": result.success_rate,
+            "eval_episodes": result.episodes, "run": self.config.run.name}})
+        blob = policy_to_bytes(weights, meta)
+        member = Member(
+            file=policy_file_name(step), step=step, score=result.score, success_rate=result.success_rate,
+            episodes=result.episodes, rank_score=rank.score, rank_success_rate=rank.success_rate,
+            rank_episodes=rank.episodes, sha256=sha256(blob), size=len(blob), object=meta.object_name or
+            self.config.env.object, force_feedback=meta.force_feedback,
+            policy_version=int(meta.extra.get("policy_version", 0) or 0), evaluated_at=time.time())
+        return member, blob
+
+    def _rescore_members(self) -> None:
+        for old in list(self.top.members):
+            data = self.top.read_policy(old)
+            weights, meta = load_policy_bytes(data)
+            meta.extra = {k: v for k, v in meta.extra.items() if k != "evaluation"}
+            policy = self._policy(weights, meta)
+            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", old.step)
+            member, blob = self._rank(old.step, weights, meta, policy, result)
+            self.top.replace(member, blob)
+        self.top.commit()
+
+    # ------------------------------------------------------------------ serving
+    def refresh_snapshot(self) -> None:
+        """Rebuild what the endpoints serve from the top k (after each commit)."""
+        best_member = self.top.best
+        best = None
+        if best_member is not None:
+            data = self.top.read_policy(best_member)
+            best = BestPolicy(
+                run=self.config.run.name, step=best_member.step, score=best_member.rank_score,
+                success_rate=best_member.rank_success_rate, episodes=best_member.rank_episodes,
+                eval_score=best_member.score, eval_success_rate=best_member.success_rate,
+                eval_episodes=best_member.episodes, object=best_member.object,
+                force_feedback=best_member.force_feedback, policy_version=best_member.policy_version,
+                sha256=best_member.sha256, policy=data, time=time.time())
+        self.snapshot = Snapshot.build(self.config.run.name, best, self.top.to_json(with_history=False))
+
+    def _on_query(self, outcome: str) -> None:
+        self.counters.queries += 1
+        if outcome != "ok":
+            self.counters.bad_queries += 1
+
+    def stats(self) -> dict:
+        c = self.counters
+        best = self.top.best
+        return {
+            "evaluations": c.evaluations,
+            "rank_evaluations": c.rank_evaluations,
+            "episodes": c.episodes,
+            "episodes_per_s": c.episodes / c.episode_seconds if c.episode_seconds else None,
+            "entered_top": c.entered_top,
+            "pending": len(self.pending),
+            "evaluating": self.current,
+            "last_step": self.top.last_step,
+            "skipped": c.skipped,
+            "bad_checkpoints": c.bad_checkpoints,
+            "missing_files": c.missing_files,
+            "best_step": best.step if best else None,
+            "best_score": best.rank_score if best else None,
+            "best_success_rate": best.rank_success_rate if best else None,
+            "top_scores": {str(m.step): m.score for m in self.top.members},
+            "top_rank_scores": {str(m.step): m.rank_score for m in self.top.members},
+            "top_count": len(self.top.members),
+            "queries": c.queries,
+            "bad_queries": c.bad_queries,
+            "http_port": self.http.port if self.http is not None else None,
+            "http_requests": dict(self.http.requests_by_status) if self.http is not None else {},
+            "rejected": self.rejects.total,
+            "rejected_by_reason": self.rejects.counts(),
+            "uptime_s": time.monotonic() - self._t0,
+        }
+
+    def start_http(self) -> None:
+        ev = self.config.evaluator
+        try:
+            self.http = EvaluatorHTTPServer(ev.http_host, ev.http_port, lambda: self.snapshot).start()
+            log.info("HTTP: http://%s:%d/best (metadata), /best/policy (download), /top", ev.http_host, self.http.port)
+        except OSError as exc:  # the Zenoh endpoint still works; say so loudly instead of dying
+            log.error("HTTP server not started on %s:%d: %s (the Zenoh endpoint still serves %s)",
+                      ev.http_host, ev.http_port, exc, self.keys.best)
+
+    # ------------------------------------------------------------------ service loop
+    def run(self, stop: threading.Event) -> None:
+        from forcegrasp.runtime import open_service_session
+        from forcegrasp.transport import close_session, declare_publisher, declare_token
+
+        self._stop = stop
+        self.load()
+        self.start_http()
+        session = open_service_session(self.config, "evaluator")
+        stats_thread = None
+        try:
+            token = declare_token(session, self.keys.alive("evaluator", self.instance))
+            subscriber = session.declare_subscriber(self.keys.checkpoints,
+                                                    lambda s: self.on_announcement(s.payload.to_bytes()))
+            queryable = declare_best_queryable(session, self.config.run.name, lambda: self.snapshot, self._on_query)
+            stats_pub = declare_publisher(session, self.keys.stats("evaluator", self.instance))
+
+            def publish_stats() -> None:
+                while not stop.wait(self.stats_every):
+                    try:
+                        stats_pub.put(encode_stats(Stats("evaluator", self.instance, self.stats())))
+                    except Exception:
+                        log.exception("publishing stats failed")
+
+            stats_pub.put(encode_stats(Stats("evaluator", self.instance, self.stats())))
+            stats_thread = threading.Thread(target=publish_stats, name="evaluator-stats", daemon=True)
+            stats_thread.start()
+            last_scan = time.monotonic()
+            while not stop.is_set():
+                self._drain_announcements()
+                if time.monotonic() - last_scan >= self.scan_every:
+                    self.scan()
+                    last_scan = time.monotonic()
+                nxt = self.next_checkpoint()
+                if nxt is None:
+                    stop.wait(0.1)
+                    continue
+                try:
+                    self.process(*nxt)
+                except Interrupted:
+                    log.info("stopping: evaluation of step %d abandoned (redone after a restart)", nxt[0])
+                except Exception:  # a bug or a full disk must not take the endpoint down with it
+                    log.exception("evaluating step %d failed; skipping it", nxt[0])
+                    self.failed.add(nxt[0])
+                    self.counters.bad_checkpoints += 1
+            subscriber.undeclare()
+            queryable.undeclare()
+            token.undeclare()
+        finally:
+            stop.set()
+            if stats_thread is not None:
+                stats_thread.join(timeout=5)
+            close_session(session)
+            if self.http is not None:
+                self.http.stop()
+
+
+CRASH_ENV = "FORCEGRASP_FAULT_CRASH_AT"  # not FORCEGRASP_EVALUATOR_*: that prefix is configuration
+
+
+def _crash_hook_from_env():
+    """Fault injection for the crash tests: ``FORCEGRASP_FAULT_CRASH_AT=policy_written:3``
+    SIGKILLs this process the 3rd time it passes that point (``policy_written``: a new member's
+    file is on disk, its index not yet; ``index_written``: the index is, evicted files remain)."""
+    spec = os.environ.get(CRASH_ENV)
+    if not spec:
+        return None
+    point, _, count = spec.partition(":")
+    remaining = {"n": int(count or 1)}
+
+    def hook(name: str) -> None:
+        if name == point:
+            remaining["n"] -= 1
+            if remaining["n"] <= 0:
+                log.warning("%s=%s: killing myself now", CRASH_ENV, spec)
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    return hook
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="forcegrasp evaluator", description=__doc__.splitlines()[0])
+    parser.add_argument("--id", default="0", help="instance id in the stats and liveliness keys (default 0)")
+    parser.add_argument("--scan-every", type=float, default=10.0, metavar="S",
+                        help="seconds between scans of the checkpoints folder (default 10)")
+    parser.add_argument("--stats-every", type=float, default=2.0, metavar="S", help="seconds between stats messages")
+    parser.add_argument("--no-mcap", action="store_true", help="do not write MCAP episode logs")
+    parser.add_argument("--mcap-backend", choices=("auto", "sdk", "mcap"), default="auto",
+                        help="MCAP writer: foxglove-sdk, the pure-Python mcap package, or auto (sdk if installed)")
+    add_config_arguments(parser)
+    args = parser.parse_args(argv)
+    config = config_from_args(args)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    from forcegrasp.policy import configure_threads
+    from forcegrasp.runtime import stop_on_signals
+
+    configure_threads(1)  # one observation at a time: more threads only contend with the physics
+    stop = stop_on_signals()
+    service = EvaluatorService(config, args.id, log_episodes=not args.no_mcap, scan_every=args.scan_every,
+                               stats_every=args.stats_every, mcap_backend=args.mcap_backend)
+    ev = config.evaluator
+    log.info("evaluator %s: run %s, %s, every %d steps on %d episodes, top %d ranked on %d episodes, checkpoints in %s",
+             args.id, config.run.name, config.env.object, ev.eval_every, ev.eval_episodes, ev.top_k,
+             ev.final_rank_episodes, service.checkpoint_dir)
+    try:
+        service.run(stop)
+    finally:
+        service.close()
+    log.info("evaluator %s: stopped after %d evaluations", args.id, service.counters.evaluations)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
