@@ -118,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_train)
 
-    for name, (_, help_text) in SERVICES.items():
+    for name, (_, help_text) in {**SERVICES, **TOOLS}.items():
         sub.add_parser(name, help=help_text + " (see forcegrasp %s --help)" % name, add_help=False)
 
     p = sub.add_parser("picture", help="render the labelled grasps of objects to docs/grasps/")
@@ -135,19 +135,27 @@ SERVICES = {
     "up": ("forcegrasp.launcher", "start learner, actors and evaluator as local processes on loopback"),
     "learner": ("forcegrasp.services.learner.learner", "run the SAC learner service"),
     "actor": ("forcegrasp.services.actor.actor", "run one actor service (point it at a learner with --set)"),
+    "evaluator": ("forcegrasp.services.evaluator.evaluator", "run the evaluator service (top-k checkpoints, best policy)"),
+}
+
+#: Other sub-commands that own their argument list.
+TOOLS = {
+    "best": ("forcegrasp.services.evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
+    "replay": ("forcegrasp.replay_render", "render an evaluator episode log (.mcap) to an image strip or video"),
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in SERVICES:
+    if argv and (argv[0] in SERVICES or argv[0] in TOOLS):
         import importlib
 
         from forcegrasp.config import ConfigError
         from forcegrasp.objects import ObjectFileError
 
         try:
-            return int(importlib.import_module(SERVICES[argv[0]][0]).main(argv[1:]) or 0)
+            module = (SERVICES.get(argv[0]) or TOOLS[argv[0]])[0]
+            return int(importlib.import_module(module).main(argv[1:]) or 0)
         except (ConfigError, ObjectFileError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -1,6 +1,6 @@
 """``forcegrasp up``: the whole cluster as local processes on loopback, with live progress.
 
-Starts the learner, ``actor.num_actors`` actors (and the evaluator once it exists) from one
+Starts the learner, ``actor.num_actors`` actors and the evaluator from one
 resolved configuration file, prints one progress line every few seconds from the services' own
 stats messages, restarts a service that dies, and on Ctrl-C (or SIGTERM) stops them all:
 SIGINT first so the learner writes its checkpoint, SIGKILL after a grace period.
@@ -29,6 +29,7 @@ def service_commands(config_path: Path, num_actors: int) -> dict[str, list[str]]
     for i in range(num_actors):
         commands[f"actor-{i}"] = py + ["forcegrasp.services.actor", "--config", str(config_path), "--id", f"actor-{i}",
                                        "--seed", str(1000 * (i + 1))]
+    commands["evaluator"] = py + ["forcegrasp.services.evaluator", "--config", str(config_path)]
     return commands
 
 
@@ -38,7 +39,12 @@ def progress_line(stats: dict) -> str:
         return "waiting for the learner..."
     ret = learner.get("return_mean")
     succ = learner.get("success_rate")
-    actors = [f"{k}: v{v.get('policy_version', 0)} {v.get('steps_per_s', 0):.0f} st/s" for k, v in sorted(stats.items()) if k != "learner"]
+    actors = [f"{k}: v{v.get('policy_version', 0)} {v.get('steps_per_s', 0):.0f} st/s" for k, v in sorted(stats.items())
+              if k not in ("learner", "evaluator")]
+    ev = stats.get("evaluator")
+    if ev is not None:
+        best = "-" if ev.get("best_score") is None else f"{ev['best_score']:.1f} (step {ev['best_step']})"
+        actors.append(f"| evaluated {ev.get('evaluations', 0)}, best {best}")
     return (f"steps {learner['ingested']:>9}  updates {learner['updates']:>8} ({learner['updates_per_s']:.0f}/s)  "
             f"v{learner['policy_version']}  return(100) {'-' if ret is None else f'{ret:.1f}'}  "
             f"success {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | " + "  ".join(actors))
@@ -95,7 +101,7 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print) ->
             if payload is not None:
                 try:
                     s = decode_stats(payload)
-                    latest["learner" if s.service == "learner" else s.id] = s.values
+                    latest[s.service if s.service in ("learner", "evaluator") else s.id] = s.values
                 except ProtocolError:
                     pass
             for name, p in list(procs.items()):
