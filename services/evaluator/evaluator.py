@@ -100,7 +100,7 @@ class EvaluatorService:
         self.http: EvaluatorHTTPServer | None = None
         self.current: int | None = None
         self._stop = threading.Event()
-        self._t0 = time.monotonic()
+        self._t0 = self._last_scan = time.monotonic()
 
     # ------------------------------------------------------------------ start-up
     def _take_lock(self):
@@ -148,6 +148,7 @@ class EvaluatorService:
             self._rescore_members()
         self.refresh_snapshot()
         best = self.top.best
+        self._last_scan = time.monotonic()
         log.info("top %d: %d members, best %s, last evaluated step %s", self.top.k, len(self.top.members),
                  f"{best.file} ({best.rank_score:.2f})" if best else "none", self.top.last_step)
         self.scan()
@@ -336,6 +337,29 @@ class EvaluatorService:
             self.top.replace(member, blob)
         self.top.commit()
 
+    def poll_once(self) -> bool:
+        """One turn of the service loop: take announcements, scan, evaluate the next checkpoint.
+        Returns whether a checkpoint was processed."""
+        self._drain_announcements()
+        # Scan before every evaluation, not only every scan_every seconds: an announcement can
+        # overtake older checkpoints this evaluator missed (it connected late, say), and those
+        # must be evaluated first or the spacing rule would skip them for good.
+        if self.pending or time.monotonic() - self._last_scan >= self.scan_every:
+            self.scan()
+            self._last_scan = time.monotonic()
+        nxt = self.next_checkpoint()
+        if nxt is None:
+            return False
+        try:
+            self.process(*nxt)
+        except Interrupted:
+            log.info("stopping: evaluation of step %d abandoned (redone after a restart)", nxt[0])
+        except Exception:  # a bug or a full disk must not take the endpoint down with it
+            log.exception("evaluating step %d failed; skipping it", nxt[0])
+            self.failed.add(nxt[0])
+            self.counters.bad_checkpoints += 1
+        return True
+
     # ------------------------------------------------------------------ serving
     def refresh_snapshot(self) -> None:
         """Rebuild what the endpoints serve from the top k (after each commit)."""
@@ -423,24 +447,9 @@ class EvaluatorService:
             stats_pub.put(encode_stats(Stats("evaluator", self.instance, self.stats())))
             stats_thread = threading.Thread(target=publish_stats, name="evaluator-stats", daemon=True)
             stats_thread.start()
-            last_scan = time.monotonic()
             while not stop.is_set():
-                self._drain_announcements()
-                if time.monotonic() - last_scan >= self.scan_every:
-                    self.scan()
-                    last_scan = time.monotonic()
-                nxt = self.next_checkpoint()
-                if nxt is None:
+                if not self.poll_once():
                     stop.wait(0.1)
-                    continue
-                try:
-                    self.process(*nxt)
-                except Interrupted:
-                    log.info("stopping: evaluation of step %d abandoned (redone after a restart)", nxt[0])
-                except Exception:  # a bug or a full disk must not take the endpoint down with it
-                    log.exception("evaluating step %d failed; skipping it", nxt[0])
-                    self.failed.add(nxt[0])
-                    self.counters.bad_checkpoints += 1
             subscriber.undeclare()
             queryable.undeclare()
             token.undeclare()
