@@ -187,7 +187,7 @@ class TopK:
                     changed = True
                     continue
                 self.members.append(member)
-        self.members.sort(key=Member.membership_key)
+        self.members = sorted(self.members, key=Member.membership_key)
         while len(self.members) > self.k:  # k lowered since the last run
             dropped = self.members.pop()
             log.info("top-k: k is %d now: %s leaves the top", self.k, dropped.file)
@@ -248,10 +248,10 @@ class TopK:
             f.write(data)
         if self.crash_hook is not None:
             self.crash_hook("policy_written")
-        self.members = [m for m in self.members if m.step != member.step] + [member]
-        self.members.sort(key=Member.membership_key)
-        evicted = self.members[self.k:]
-        self.members = self.members[: self.k]
+        # New lists, never in-place edits: the stats thread may be reading the old one.
+        ranked = sorted([m for m in self.members if m.step != member.step] + [member], key=Member.membership_key)
+        evicted = ranked[self.k:]
+        self.members = ranked[: self.k]
         self._evicted.extend(m.file for m in evicted if m.file != member.file)
         if member in evicted:  # it did not make it after all: its file goes after the index
             self._evicted.append(member.file)
