@@ -244,38 +244,47 @@ def test_kill9_at_any_moment_keeps_a_consistent_top_five(tmp_path):
     def peek():  # while a process runs: the index only (its files may be replaced under our feet)
         return json.loads((folder / "index.json").read_text())
 
-    # Deterministic crash points (the run resumes where the previous one died):
-    # 3rd admission = step 3000's file written, its index not; 4th index = step 6000's, which
-    # evicts step 4000 (0.95) whose file is still there; then step 9000's file before its index.
-    for point, leftover in (("policy_written:3", 3000), ("index_written:4", 4000), ("policy_written:2", 9000)):
-        proc = start_evaluator(config_path, log, env={CRASH_ENV: point})
-        assert proc.wait(timeout=TIMEOUT) == -signal.SIGKILL, log.read_text()[-2000:]
-        check_after_crash()
-        assert (folder / topk.policy_file_name(leftover)).exists() and topk.policy_file_name(leftover) not in named()
-    # Random moments while it works: wait for its next commit, then kill within half a second.
-    kills = 0
-    for _ in range(3):
-        before = len(check_after_crash()["history"])
-        proc = start_evaluator(config_path, log)
-        deadline = time.monotonic() + TIMEOUT
-        while len(peek()["history"]) == before and time.monotonic() < deadline:
-            assert proc.poll() is None, log.read_text()[-2000:]
-            time.sleep(0.02)
-        time.sleep(rng.uniform(0.0, 0.5))
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(timeout=10)
-        kills += 1
-        check_after_crash()
-    proc = start_evaluator(config_path, log)
+    procs = []
+
+    def launch(**env):
+        procs.append(start_evaluator(config_path, log, env=env))
+        return procs[-1]
+
     try:
+        # Deterministic crash points (the run resumes where the previous one died):
+        # 3rd admission = step 3000's file written, its index not; 4th index = step 6000's, which
+        # evicts step 4000 (0.95) whose file is still there; then step 9000's file before its index.
+        for point, leftover in (("policy_written:3", 3000), ("index_written:4", 4000), ("policy_written:2", 9000)):
+            proc = launch(**{CRASH_ENV: point})
+            assert proc.wait(timeout=TIMEOUT) == -signal.SIGKILL, log.read_text()[-2000:]
+            check_after_crash()
+            assert (folder / topk.policy_file_name(leftover)).exists()
+            assert topk.policy_file_name(leftover) not in named()
+        # Random moments while it works: wait for its next commit, then kill within half a second.
+        kills = 0
+        for _ in range(3):
+            before = len(check_after_crash()["history"])
+            proc = launch()
+            deadline = time.monotonic() + TIMEOUT
+            while len(peek()["history"]) == before and time.monotonic() < deadline:
+                assert proc.poll() is None, log.read_text()[-2000:]
+                time.sleep(0.02)
+            time.sleep(rng.uniform(0.0, 0.5))
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+            kills += 1
+            check_after_crash()
+        proc = launch()
         deadline = time.monotonic() + TIMEOUT
-        while time.monotonic() < deadline:
-            if peek()["last_step"] == max(speeds):
-                break
+        while peek()["last_step"] != max(speeds) and time.monotonic() < deadline:
             assert proc.poll() is None, log.read_text()[-2000:]
             time.sleep(0.3)
-    finally:
         assert stop(proc) == 0
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     index = check_after_crash()
     assert sorted(h["step"] for h in index["history"]) == sorted(speeds), f"seed {seed}"  # each exactly once
     slowest = sorted(speeds, key=speeds.get)[:5]
