@@ -40,8 +40,8 @@ def make_ours(args, data):
     from forcegrasp.replay import ReplayBuffer
     from forcegrasp.sac import SAC, SACConfig
 
-    sac = SAC(args.obs, args.act, SACConfig(hidden=tuple(args.hidden), batch_size=args.batch,
-                                            device=args.device, num_threads=args.threads))
+    sac = SAC(args.obs, args.act, SACConfig(hidden=tuple(args.hidden), batch_size=args.batch, device=args.device,
+                                            num_threads=args.threads, parallel_branches=False if args.serial else None))
     buffer = ReplayBuffer(args.obs, args.act, capacity=len(data["reward"]))
     buffer.add_batch(data["obs"], data["action"], data["reward"], data["next_obs"], data["terminated"])
     rng = np.random.default_rng(1)
@@ -113,6 +113,7 @@ def main(argv=None) -> int:
                         help="torch threads per ForceGrasp gradient branch (default: half the cores, see configure_threads)")
     parser.add_argument("--sb3-threads", type=int, default=None,
                         help="torch threads for stable-baselines3 (default: all usable cores, torch's own default)")
+    parser.add_argument("--serial", action="store_true", help="run ForceGrasp's two gradient branches one after the other")
     parser.add_argument("--no-sb3", action="store_true", help="time ForceGrasp's SAC only")
     args = parser.parse_args(argv)
 
@@ -124,7 +125,9 @@ def main(argv=None) -> int:
     args.sb3_threads = args.sb3_threads or usable_cores()
     print(f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, device {device}"
           + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""), flush=True)
-    print(f"# torch threads: forcegrasp {args.threads} per gradient branch, stable-baselines3 {args.sb3_threads}", flush=True)
+    print(f"# torch threads: forcegrasp {args.threads} per gradient branch"
+          f" ({'serial' if args.serial else 'concurrent branches where >= 2 cores'}), stable-baselines3 {args.sb3_threads}",
+          flush=True)
     print(f"# batch {args.batch}, hidden {args.hidden}, obs {args.obs}, act {args.act}, "
           f"{args.reps} x {args.updates} updates each, interleaved", flush=True)
     print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start "

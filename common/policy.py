@@ -39,6 +39,7 @@ def select_device(device: str | torch.device = "auto") -> torch.device:
 
 
 def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask, e.g. a container's CPU set)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 

@@ -120,8 +120,8 @@ class TwinQ(nn.Module):
         needs dQ/da) but none are computed for, or accumulated into, the critic's weights.
         """
         own = (lambda t: t.detach()) if frozen else (lambda t: t)
-        # ReLUs run in place on fresh matmul outputs (whose backward does not need them): on a
-        # CPU these 2 x batch x 256 passes over memory cost about as much as a small matmul.
+        # ReLUs run in place on the fresh matmul outputs (baddbmm's backward does not need them),
+        # saving a 2 x batch x hidden buffer and a pass over memory per layer.
         x = torch.baddbmm(embedding, action.expand(self.n, -1, -1), own(self.act_weight)).relu_()
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases[1:])):
@@ -258,7 +258,10 @@ class SAC:
             critic, actor = critic_grads(), actor_grads()
         else:
             pending = self._worker.submit(actor_grads)
-            critic, actor = critic_grads(), pending.result()
+            try:
+                critic = critic_grads()
+            finally:
+                actor = pending.result()  # always wait: the worker must not outlive this update
         self.optimizer.step()
 
         # Target critics: theta' <- theta' + tau (theta - theta'), one fused op over all tensors.
@@ -305,7 +308,7 @@ class SAC:
     def state_dict(self) -> dict[str, torch.Tensor]:
         """Everything needed to resume exactly, as a flat ``{name: tensor}`` dict.
 
-        Networks, targets, log-alpha, the update counter, the sampling RNG state, and each Adam
+        Networks, targets, log-alpha, the update counter, both sampling RNG states, and each Adam
         parameter's step count and moments (zeros before the first step, which is what Adam starts
         from). Adam's hyper-parameters come from the config, so they are not repeated here.
         """

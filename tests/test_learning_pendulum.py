@@ -3,8 +3,8 @@
 A random policy scores about -1200 per episode and a good one about -150. Budget: 6,000
 environment steps (1,000 random, then one update per step) with 64-unit networks and learning
 rate 1e-3 (the usual Pendulum setting), one torch thread per gradient branch; about 40 s on a
-2-core CPU. The
-learned policy is then saved, reloaded as a deployable `Policy` and evaluated deterministically.
+2-core CPU. The learned policy is then saved, reloaded as a deployable `Policy` and evaluated
+deterministically on held-out start states.
 """
 
 import numpy as np
