@@ -4,7 +4,7 @@ The actor side is the service's own stepping code (``ActorService.step_all``): a
 forward pass of a real-size policy (77-256-256-14) for all its envs, the env steps, resets and
 the encoding of TransitionBatch messages. The raw side replays the control sequences those
 envs produced with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)`` per env, so
-both simulate the same contacts. Repetitions alternate the two.
+both simulate the same contacts. Each repetition runs actor, raw, raw, actor (A-B-B-A).
 
     python bench/bench_actor.py --envs 8 --steps 400 --reps 3
 """
@@ -77,11 +77,15 @@ def main() -> None:
           f"frame_skip {frame_skip}, one core", flush=True)
     actor_rates, raw_rates = [], []
     for rep in range(args.reps):
-        t_actor, ctrls, resets = record(service, args.steps)
+        # A-B-B-A: the actor, the raw physics twice (same controls), the actor again.
+        t_actor1, ctrls, resets = record(service, args.steps)
         service.outbox.clear()
         t_raw = raw([env.model for env in service.envs], ctrls, resets, frame_skip)
-        total = args.steps * args.envs
-        actor_rates.append(total / t_actor)
+        t_raw += raw([env.model for env in service.envs], ctrls, resets, frame_skip)
+        t_actor2, _, _ = record(service, args.steps)
+        service.outbox.clear()
+        total = 2 * args.steps * args.envs
+        actor_rates.append(total / (t_actor1 + t_actor2))
         raw_rates.append(total / t_raw)
         print(f"  rep {rep + 1}/{args.reps}: actor {actor_rates[-1]:6.0f} env steps/s   raw physics {raw_rates[-1]:6.0f} "
               f"env steps/s   ratio {actor_rates[-1] / raw_rates[-1]:.1%}", flush=True)

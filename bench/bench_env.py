@@ -3,7 +3,7 @@
 The raw loop replays the very control sequence the env produced (random policy, resets
 included) with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)``, so both sides
 simulate the same contacts and the ratio isolates the env's own Python overhead.
-Repetitions alternate env and raw runs so machine noise hits both alike.
+Each repetition runs env, raw, raw, env (A-B-B-A) so a drifting machine hits both alike.
 
     python bench/bench_env.py --object mug --steps 3000 --reps 3
 """
@@ -76,10 +76,12 @@ def main() -> None:
           f"{len(starts)} episodes per run")
     env_rates, raw_rates = [], []
     for rep in range(args.reps):
-        t_env, _ = run_env(env, actions, seed=0)
-        t_raw = run_raw(env.model, ctrls, starts, env.frame_skip)
-        env_rates.append(args.steps / t_env)
-        raw_rates.append(args.steps / t_raw)
+        # A-B-B-A: a machine whose speed drifts during a repetition hits both sides alike.
+        t_env1, _ = run_env(env, actions, seed=0)
+        t_raw = run_raw(env.model, ctrls, starts, env.frame_skip) + run_raw(env.model, ctrls, starts, env.frame_skip)
+        t_env2, _ = run_env(env, actions, seed=0)
+        env_rates.append(2 * args.steps / (t_env1 + t_env2))
+        raw_rates.append(2 * args.steps / t_raw)
         print(f"  rep {rep + 1}/{args.reps}: env {env_rates[-1]:7.0f} steps/s   raw mj_step {raw_rates[-1]:7.0f} steps/s"
               f"   ratio {env_rates[-1] / raw_rates[-1]:.1%}", flush=True)
     e, r = np.median(env_rates), np.median(raw_rates)
