@@ -3,8 +3,8 @@ same machine, one gradient update per environment step, measured one after the o
 
 - SB3: ``SAC("MlpPolicy", env, batch_size=256, train_freq=1, gradient_steps=1)``, networks
   [256, 256]; the rate is timed from the first update to the end (random warm-up excluded).
-- ForceGrasp: ``forcegrasp up`` (learner + actors as processes on loopback) with the same SAC
-  settings; the rate is read from the learner's stats over a window after learning started.
+- ForceGrasp: ``forcegrasp up --no-evaluator`` (learner + actors as processes on loopback; SB3
+  evaluates nothing either) with the same SAC settings; the rate is read from the learner's stats over a window after learning started.
   At a 1:1 update-to-data ratio the training rate is min(env steps ingested/s, updates/s):
   both are printed.
 
@@ -58,7 +58,7 @@ def bench_cluster(object_name: str, seconds: float, actors: int, envs: int) -> t
     port = free_tcp_port()
     with tempfile.TemporaryDirectory() as tmp:
         run = "bench"
-        cmd = [sys.executable, "-m", "forcegrasp.cli", "up", "--stop-after", str(seconds + 60),
+        cmd = [sys.executable, "-m", "forcegrasp.cli", "up", "--no-evaluator", "--stop-after", str(seconds + 60),
                "--set", f"run.name={run}", "--set", f"run.output_dir={tmp}", "--set", f"env.object={object_name}",
                "--set", f"actor.num_actors={actors}", "--set", f"actor.envs_per_actor={envs}",
                "--set", f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "--set", "learner.stats_every_s=1.0",

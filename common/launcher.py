@@ -23,13 +23,14 @@ from forcegrasp.transport import QueueSubscriber, close_session
 GRACE_S = 20.0
 
 
-def service_commands(config_path: Path, num_actors: int) -> dict[str, list[str]]:
+def service_commands(config_path: Path, num_actors: int, evaluator: bool = True) -> dict[str, list[str]]:
     py = [sys.executable, "-m"]
     commands = {"learner": py + ["forcegrasp.services.learner", "--config", str(config_path)]}
     for i in range(num_actors):
         commands[f"actor-{i}"] = py + ["forcegrasp.services.actor", "--config", str(config_path), "--id", f"actor-{i}",
                                        "--seed", str(1000 * (i + 1))]
-    commands["evaluator"] = py + ["forcegrasp.services.evaluator", "--config", str(config_path)]
+    if evaluator:
+        commands["evaluator"] = py + ["forcegrasp.services.evaluator", "--config", str(config_path)]
     return commands
 
 
@@ -65,13 +66,13 @@ def stop_all(procs: dict[str, subprocess.Popen], log=print, grace_s: float = GRA
             p.wait()
 
 
-def up(config, config_path: Path, stop_after: float | None = None, log=print) -> int:
+def up(config, config_path: Path, stop_after: float | None = None, log=print, evaluator: bool = True) -> int:
     run_dir = Path(config.run.output_dir) / config.run.name
     run_dir.mkdir(parents=True, exist_ok=True)
     config_path.write_text(config.to_toml())
     logs = run_dir / "logs"
     logs.mkdir(exist_ok=True)
-    commands = service_commands(config_path, config.actor.num_actors)
+    commands = service_commands(config_path, config.actor.num_actors, evaluator)
     procs: dict[str, subprocess.Popen] = {}
 
     def start(name: str) -> None:
@@ -125,7 +126,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="forcegrasp up", description=__doc__.splitlines()[0])
     add_config_arguments(parser)
     parser.add_argument("--stop-after", type=float, default=None, help="stop the cluster after this many seconds")
+    parser.add_argument("--no-evaluator", action="store_true",
+                        help="leave the evaluator out (run it on another machine, or measure training alone)")
     args = parser.parse_args(argv)
     config = config_from_args(args)
     path = Path(config.run.output_dir) / config.run.name / "cluster.toml"
-    return up(config, path, args.stop_after)
+    return up(config, path, args.stop_after, evaluator=not args.no_evaluator)
