@@ -116,8 +116,18 @@ class Policy:
         self.device = select_device(device)
         self.actor = actor.to(self.device).eval().requires_grad_(False)
         self.metadata = metadata
+        seed = seed if seed is not None else int(np.random.SeedSequence().entropy % 2**63)
         self._generator = torch.Generator(device=self.device)
-        self._generator.manual_seed(seed if seed is not None else int(np.random.SeedSequence().entropy % 2**63))
+        self._generator.manual_seed(seed)
+        # On the CPU the same network runs in numpy: for the small batches actors and the
+        # evaluator pass, torch's per-op dispatch costs 3-4x the arithmetic (~0.45 vs ~0.12 ms
+        # for 8 observations here). Both paths compute the same function (tests/test_policy_file.py).
+        self._rng = np.random.default_rng(seed)
+        self._numpy_layers = None
+        if self.device.type == "cpu":
+            self._numpy_layers = [
+                (layer.weight.detach().numpy().T.copy(), layer.bias.detach().numpy().copy()) for layer in self.actor.layers
+            ]
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -177,6 +187,9 @@ class Policy:
         if not np.all(np.isfinite(obs)):
             bad = np.argwhere(~np.isfinite(obs))[:5].tolist()
             raise ValueError(f"observation contains NaN or inf (at indices {bad})")
+        if self._numpy_layers is not None:
+            action = self._numpy_action(np.atleast_2d(obs).astype(np.float32, copy=False), deterministic)
+            return action if obs.ndim == 2 else action[0]
         with torch.inference_mode():
             x = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
             batch = x if x.ndim == 2 else x.unsqueeze(0)
@@ -186,6 +199,19 @@ class Policy:
                 action = self.actor.sample(batch, generator=self._generator)[0]
             action = action.cpu().numpy()
         return action if obs.ndim == 2 else action[0]
+
+    def _numpy_action(self, x: np.ndarray, deterministic: bool) -> np.ndarray:
+        """`Actor.deterministic` / `Actor.sample`'s action, in numpy (no log-probability needed)."""
+        *hidden, (w_out, b_out) = self._numpy_layers
+        for w, b in hidden:
+            x = np.maximum(x @ w + b, 0.0)
+        out = x @ w_out + b_out
+        act_dim = self.metadata.act_dim
+        mean = out[:, :act_dim]
+        if deterministic:
+            return np.tanh(mean)
+        log_std = np.clip(out[:, act_dim:], self.actor.log_std_min, self.actor.log_std_max)
+        return np.tanh(mean + np.exp(log_std) * self._rng.standard_normal(mean.shape, dtype=np.float32))
 
     def rescale(self, action: np.ndarray) -> np.ndarray:
         """Map [-1, 1] actions to the environment's units recorded in the metadata (low/high)."""

@@ -230,3 +230,16 @@ def test_crash_mid_write_keeps_the_old_file(saved):
     assert saved.read_bytes() == before
     assert os.listdir(saved.parent) == [saved.name]
     load_policy_file(saved)
+
+
+def test_numpy_inference_samples_the_same_distribution_as_the_torch_actor(policy):
+    """The CPU fast path (numpy) and the network it copies (torch) are the same policy."""
+    obs = np.repeat(obs_batch(1), 4000, axis=0)
+    ours = np.arctanh(np.clip(policy(obs, deterministic=False), -0.999999, 0.999999))
+    with torch.no_grad():
+        mean, log_std = policy.actor(torch.as_tensor(obs[:1]))
+    np.testing.assert_allclose(ours.mean(0), mean[0].numpy(), atol=4 * log_std.exp().max().item() / np.sqrt(4000) + 1e-3)
+    np.testing.assert_allclose(ours.std(0), log_std[0].exp().numpy(), rtol=0.1)
+    with torch.no_grad():
+        torch_det = policy.actor.deterministic(torch.as_tensor(obs[:3])).numpy()
+    np.testing.assert_allclose(policy(obs[:3]), torch_det, atol=1e-5)
