@@ -142,6 +142,7 @@ SERVICES = {
 TOOLS = {
     "best": ("forcegrasp.services.evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
     "replay": ("forcegrasp.replay_render", "render an evaluator episode log (.mcap) to an image strip or video"),
+    "plot": ("forcegrasp.plot", "training curves of a run directory as one PNG"),
 }
 
 

@@ -211,6 +211,7 @@ class LearnerService:
         return lead - self._updates_due / self.sac_cfg.updates_per_step
 
     def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
+        """Counters, and rates over the ``elapsed`` seconds since ``updates0``/``ingested0``."""
         now = time.monotonic()
         actors = {}
         for actor_id, t in self.actors.items():
@@ -287,7 +288,8 @@ class LearnerService:
                     progress_pub.put(encode_stats(Stats("learner", "progress", progress)))
                     last_progress = now
                 if now - last_stats >= cfg.stats_every_s:
-                    values = self.stats(now - t0, updates0, ingested0)
+                    values = self.stats(now - t0, updates0, ingested0)  # rates over this stats window
+                    t0, updates0, ingested0 = now, self.sac.num_updates, self.ingested
                     stats_pub.put(encode_stats(Stats("learner", "0", values)))
                     self._log_scalars(values, metrics)
                     last_stats = now
