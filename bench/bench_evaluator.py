@@ -46,7 +46,7 @@ def main(argv=None) -> int:
     from forcegrasp.mcap_log import EpisodeLogger
     from forcegrasp.policy import Actor, Policy, configure_threads
     from forcegrasp.runtime import make_env, policy_metadata
-    from forcegrasp.services.evaluator.evaluation import placements, run_episode
+    from forcegrasp.evaluation import placements, run_episode
 
     configure_threads(1)
     torch.manual_seed(0)

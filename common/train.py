@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from forcegrasp.env import ACTION_LAYOUT, FunctionalGraspEnv, observation_layout
+from forcegrasp.evaluation import evaluate, placements
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.replay import ReplayBuffer
 from forcegrasp.sac import SAC, SACConfig
@@ -39,22 +40,6 @@ class TrainConfig:
     eval_episodes: int = 10  # fixed placements, the same for every evaluation
     log_every: int = 500
     sac: SACConfig = field(default_factory=SACConfig)
-
-
-def evaluate(policy_fn, env: FunctionalGraspEnv, episodes: int, seed: int = 12345) -> dict:
-    """Deterministic policy on a fixed set of jittered placements; mean return and success rate."""
-    offsets = np.random.default_rng(seed).uniform(-env.jitter, env.jitter, (episodes, 2))
-    returns, successes = [], []
-    for offset in offsets:
-        obs, _ = env.reset(options={"offset": offset})
-        total, done, info = 0.0, False, {}
-        while not done:
-            obs, reward, terminated, truncated, info = env.step(policy_fn(obs))
-            total += reward
-            done = terminated or truncated
-        returns.append(total)
-        successes.append(bool(info["success"]))
-    return {"return": float(np.mean(returns)), "success_rate": float(np.mean(successes))}
 
 
 class Trainer:
@@ -147,8 +132,10 @@ class Trainer:
                     f"return(20) {mean_ret:8.1f}  success(20) {succ:4.0%}  alpha {self.sac.alpha:.3f}"
                 )
             if self.step % cfg.checkpoint_every == 0 or self.step == total_steps:
-                result = evaluate(lambda o: self.sac.act(o, deterministic=True), self.eval_env, cfg.eval_episodes)
-                result["step"] = self.step
+                # The evaluator's protocol: deterministic policy, the same seeded placements each time.
+                scored = evaluate(self.eval_env, lambda o: self.sac.act(o, deterministic=True),
+                                  placements(cfg.sac.seed, cfg.eval_episodes, cfg.jitter))
+                result = {"step": self.step, "return": scored.score, "success_rate": scored.success_rate}
                 history.append(result)
                 writer.add_scalar("eval/return", result["return"], self.step)
                 writer.add_scalar("eval/success_rate", result["success_rate"], self.step)

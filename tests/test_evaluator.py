@@ -35,7 +35,7 @@ from forcegrasp.services.evaluator.endpoint import (
     fetch_best_http,
     BestFetchError,
 )
-from forcegrasp.services.evaluator.evaluation import EvalResult, evaluate, placements
+from forcegrasp.evaluation import EvalResult, evaluate, placements
 from forcegrasp.services.evaluator.evaluator import EvaluatorService
 
 HIDDEN = (32, 32)

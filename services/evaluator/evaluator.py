@@ -40,7 +40,7 @@ from forcegrasp.services.evaluator.endpoint import (
     Snapshot,
     declare_best_queryable,
 )
-from forcegrasp.services.evaluator.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
+from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
 from forcegrasp.services.evaluator.topk import MAX_POLICY_BYTES, Member, TopK, policy_file_name, sha256, step_of
 
 log = logging.getLogger("forcegrasp.evaluator")
