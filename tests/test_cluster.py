@@ -42,6 +42,7 @@ class Cluster:
                 "learner.broadcast_every=25",
                 "learner.max_lead=64",
                 "learner.checkpoint_every=600",
+                "evaluator.eval_every=250",
                 "learner.stats_every_s=0.5",
                 "learner.sac.learning_starts=200",
                 "learner.sac.hidden=[32, 32]",
@@ -216,5 +217,11 @@ def test_learner_kill9_and_restart_resumes_from_checkpoint(cluster):
         "actors streaming to the new learner",
         lambda s: s["learner"]["ingested"] > checkpoint + 200 and s["learner"]["updates"] > first["updates"],
     )
+    # Between full checkpoints the learner leaves a policy snapshot for the evaluator every
+    # evaluator.eval_every transitions (the paper tests every 2,000 steps).
+    steps = sorted(int(p.stem.split("-")[1]) for p in (cluster.tmp / "runs" / cluster.run / "checkpoints").glob("policy-*"))
+    # (A burst of backlog ingested in one loop, after a restart say, spaces two snapshots wider.)
+    gaps = [b - a for a, b in zip(steps, steps[1:])]
+    assert len(steps) >= 4 and float(np.median(gaps)) <= 300, steps
     # Actors kept their buffered batches while the learner was gone and never exited.
     assert all(p.poll() is None for n, p in cluster.procs.items() if n != "learner")

@@ -104,6 +104,7 @@ class LearnerService:
         self.episode_count = 0
         self._updates_due = 0.0
         self._last_checkpoint = 0
+        self._last_policy = 0
         self._resume_or_start()
 
     # ------------------------------------------------------------------ state
@@ -114,7 +115,7 @@ class LearnerService:
             self.buffer = ReplayBuffer.load(self.dir / "replay.npz", capacity=self.sac_cfg.buffer_size)
             self.ingested = int(extra["ingested"])
             self.policy_version = int(extra["policy_version"])
-            self._last_checkpoint = self.ingested
+            self._last_checkpoint = self._last_policy = self.ingested
             log.info("resumed from %s: %d transitions ingested, %d updates, %d in replay",
                      ckpt, self.ingested, self.sac.num_updates, len(self.buffer))
         else:
@@ -135,13 +136,20 @@ class LearnerService:
         self.latest_weights = encode_weights(w, self.limits)
         return self.latest_weights
 
+    def save_policy(self) -> Path:
+        """A policy snapshot for the evaluator (~350 KB): every ``evaluator.eval_every`` steps, the
+        paper's test interval, far more often than the full checkpoint with its replay."""
+        policy = self.sac.policy(self.metadata())
+        (self.dir / "checkpoints").mkdir(exist_ok=True)
+        path = policy.save(self.dir / "checkpoints" / f"policy-{self.ingested:09d}.safetensors")
+        policy.save(self.dir / "policy.safetensors")
+        self._last_policy = self.ingested
+        return path
+
     def checkpoint(self) -> Path:
         """Replay and policy first, learner state last: the learner file marks a complete set."""
         self.buffer.save(self.dir / "replay.npz")
-        policy = self.sac.policy(self.metadata())
-        (self.dir / "checkpoints").mkdir(exist_ok=True)
-        policy_path = policy.save(self.dir / "checkpoints" / f"policy-{self.ingested:09d}.safetensors")
-        policy.save(self.dir / "policy.safetensors")
+        policy_path = self.save_policy()
         self.sac.save_checkpoint(self.dir / "checkpoint.safetensors",
                                  extra={"ingested": self.ingested, "policy_version": self.policy_version})
         self._last_checkpoint = self.ingested
@@ -278,8 +286,12 @@ class LearnerService:
                 if self.sac.num_updates - last_broadcast >= cfg.broadcast_every:
                     weights_pub.put(self.make_weights())
                     last_broadcast = self.sac.num_updates
+                path = None
                 if self.ingested - self._last_checkpoint >= cfg.checkpoint_every:
                     path = self.checkpoint()
+                elif self.ingested - self._last_policy >= self.config.evaluator.eval_every:
+                    path = self.save_policy()
+                if path is not None:
                     ckpt_pub.put(encode_checkpoint(Checkpoint(self.ingested, str(path), self.policy_version)))
                 now = time.monotonic()
                 if now - last_progress >= 0.05:
