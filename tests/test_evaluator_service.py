@@ -13,6 +13,7 @@ from __future__ import annotations
 import http.client
 import json
 import os
+import re
 import random
 import signal
 import subprocess
@@ -279,6 +280,12 @@ def test_kill9_at_any_moment_keeps_a_consistent_top_five(tmp_path):
         while peek()["last_step"] != max(speeds) and time.monotonic() < deadline:
             assert proc.poll() is None, log.read_text()[-2000:]
             time.sleep(0.3)
+        # If the last run had already finished everything, the index is complete at once: wait
+        # until the new process has its signal handlers (it logs its start line after that), or
+        # a SIGINT during its imports would kill it instead of stopping it cleanly.
+        while len(re.findall(r"evaluator \S+: run ", log.read_text())) < len(procs) and time.monotonic() < deadline:
+            assert proc.poll() is None, log.read_text()[-2000:]
+            time.sleep(0.1)
         assert stop(proc) == 0
     finally:
         for p in procs:
