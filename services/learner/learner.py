@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from forcegrasp.config import Config, ConfigError, add_config_arguments, config_from_args
+from forcegrasp.env import ACTION_LAYOUT, observation_layout
 from forcegrasp.policy import weights_of
 from forcegrasp.protocol import (
     Checkpoint,
@@ -49,7 +50,7 @@ from forcegrasp.transport import (
 )
 
 log = logging.getLogger("forcegrasp.learner")
-ACT_DIM = 7
+ACT_DIM = sum(n for _, n in ACTION_LAYOUT)
 MAX_UPDATES_PER_LOOP = 8  # then look at the network again, so ingestion never starves
 MAX_DRAIN_PER_LOOP = 512
 MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
@@ -91,7 +92,7 @@ class LearnerService:
         self.dir = Path(config.run.output_dir) / config.run.name
         self.dir.mkdir(parents=True, exist_ok=True)
         self.sac_cfg = sac_config(config)
-        self.obs_dim = 77 if config.env.force_feedback else 53
+        self.obs_dim = sum(n for _, n in observation_layout(config.env.force_feedback))
         self.limits = Limits(max_payload_bytes=config.learner.max_payload_mb * 2**20)
         self.rejects = RejectCounter()
         self.actors: dict[str, ActorTrack] = collections.defaultdict(ActorTrack)
