@@ -20,7 +20,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 from forcegrasp.protocol import Keys, decode_stats
 from forcegrasp.transport import QueueSubscriber, close_session, free_tcp_port, open_session

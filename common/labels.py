@@ -15,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -147,4 +147,4 @@ def save_label(label: GraspLabel, path: Path | None = None) -> Path:
     return path
 
 
-__all__ = ["Grasp", "GraspLabel", "LabelFileError", "load_label", "save_label", "parse_label", "asdict"]
+__all__ = ["Grasp", "GraspLabel", "LabelFileError", "load_label", "save_label", "parse_label"]

@@ -51,7 +51,7 @@ import mujoco
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from forcegrasp.scene import ALL_JOINTS, OBJECT_BODY
+from forcegrasp.scene import ALL_JOINTS
 
 METADATA_NAME = "forcegrasp.episode"
 PER_STEP_TOPICS = ("/tf", "/joint_states", "/command", "/reward")

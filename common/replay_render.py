@@ -123,7 +123,7 @@ def replay(path: str | Path, out: str | Path | None = None, frames: int = 8, str
     fps = fps or max(1, round(1e9 / _step_ns(episode)))
     suffix = out.suffix.lower()
     if suffix == ".mp4" and not _ffmpeg_writer_available():
-        log(f"no ffmpeg backend for imageio here (pip install imageio-ffmpeg): writing an image strip instead")
+        log("no ffmpeg backend for imageio here (pip install imageio-ffmpeg): writing an image strip instead")
         out, suffix = out.with_suffix(".png"), ".png"
     if suffix in (".mp4", ".gif"):
         steps = list(range(0, n, max(1, stride)))

@@ -164,7 +164,7 @@ def test_actor_kill9_and_restart_rejoins_with_current_weights(cluster):
     cluster.wait_for("the learner training on without actor-a", lambda s: s["learner"]["updates"] > updates_at_kill + 25)
     cluster.history.pop("actor-a", None)
     cluster.start("actor-a")
-    s = cluster.wait_for("actor-a back", lambda s: "actor-a" in s and s["actor-a"]["steps"] > 0)
+    cluster.wait_for("actor-a back", lambda s: "actor-a" in s and s["actor-a"]["steps"] > 0)
     first = cluster.history["actor-a"][0]
     # Its very first report already carries a learner policy: it asked weights/latest at start.
     assert first["policy_version"] >= 1
@@ -208,7 +208,7 @@ def test_learner_kill9_and_restart_resumes_from_checkpoint(cluster):
     time.sleep(1.0)
     cluster.history.pop("learner", None)
     cluster.start("learner")
-    s = cluster.wait_for("the learner back", lambda s: "learner" in s)
+    cluster.wait_for("the learner back", lambda s: "learner" in s)
     first = cluster.history["learner"][0]
     checkpoint = first["last_checkpoint"]
     assert checkpoint >= 600

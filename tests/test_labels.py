@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import mujoco
-import numpy as np
 import pytest
 
 from forcegrasp.env import FunctionalGraspEnv

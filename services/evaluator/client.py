@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     add_config_arguments(parser)
     args = parser.parse_args(argv)
     from forcegrasp.policy_file import atomic_write
-    from forcegrasp.services.evaluator.endpoint import BestFetchError, fetch_best_http, fetch_best_zenoh
+    from forcegrasp.services.evaluator.endpoint import BestFetchError, fetch_best_http
 
     try:
         config = config_from_args(args)

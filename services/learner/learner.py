@@ -16,7 +16,6 @@ import argparse
 import collections
 import dataclasses
 import logging
-import queue
 import time
 from pathlib import Path
 
