@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     env = make_env(config)
     meta = policy_metadata(config, args.hidden)
     policy = Policy.from_actor(Actor(meta.obs_dim, meta.act_dim, tuple(args.hidden)), meta, seed=0)
-    places = placements(config.run.seed, args.episodes, config.env.jitter, "eval")
+    places = placements(config.run.seed, args.episodes, config.env.jitter, "eval", env.is_clear)
     modes = ["off", "sdk", "mcap"] if importlib.util.find_spec("foxglove") else ["off", "mcap"]
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -27,7 +27,7 @@ def main() -> None:
     print("|---|---|---|---|")
     for name in args.objects or list_objects():
         env = FunctionalGraspEnv(name)
-        offsets = jitter_offsets(args.placements, seed=args.seed)
+        offsets = jitter_offsets(args.placements, seed=args.seed, env=env)
         told, _ = success_rate(env, offsets, told=True)
         blind, results = success_rate(env, offsets, told=False)
         failures = Counter(r["failure"] for r in results if not r["success"])

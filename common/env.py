@@ -56,6 +56,10 @@ OBS_LAYOUT = (
     ("goal_palm", 3),
 )
 ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
+# A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
+# than this, in m); near some edges of the ±2 cm square it would. Random resets redraw such offsets.
+OVERLAP_TOLERANCE = 1e-4
+MAX_OFFSET_DRAWS = 100
 
 
 def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
@@ -189,24 +193,37 @@ class FunctionalGraspEnv(gym.Env):
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n_obs,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self._renderer = None
+        self._probe = None  # scratch MjData for `overlap`
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start at the pre-grasp with the object shifted by ``options["offset"]`` (dx, dy) in m, or
+        by an offset drawn uniformly from the part of the ±jitter square where the pre-grasp hand
+        does not overlap the object (near some edges it would start inside it; see `overlap`).
+        An explicit offset with an overlap is refused with ValueError.
+        """
         super().reset(seed=seed)
         m, d, ix = self.model, self.data, self.ix
         offset = (options or {}).get("offset")
         if offset is None:
-            offset = self.np_random.uniform(-self.jitter, self.jitter, 2)
-        offset = np.asarray(offset, dtype=float)
-        if offset.shape != (2,) or not np.all(np.isfinite(offset)):
-            raise ValueError(f"options['offset'] must be 2 finite numbers (dx, dy) in m, got {offset!r}")
-        mujoco.mj_resetData(m, d)
-        d.qpos[ix.all_qpos] = self.label.pregrasp.q
-        d.qpos[ix.object_qpos : ix.object_qpos + 3] = (offset[0], offset[1], self._rest_z)
-        d.qpos[ix.object_qpos + 3 : ix.object_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
-        d.ctrl[ix.base_act] = self.label.pregrasp.base
-        d.ctrl[ix.hand_act] = self._J0
-        mujoco.mj_forward(m, d)
+            for _ in range(MAX_OFFSET_DRAWS):
+                offset = self.np_random.uniform(-self.jitter, self.jitter, 2)
+                self._start_pose(d, offset)
+                if self._overlap(d) <= OVERLAP_TOLERANCE:
+                    break
+            else:
+                raise RuntimeError(f"{self.object_spec.name}: the pre-grasp hand overlaps the object at "
+                                   f"{MAX_OFFSET_DRAWS} random offsets in a row; relabel the pre-grasp")
+        else:
+            offset = np.asarray(offset, dtype=float)
+            if offset.shape != (2,) or not np.all(np.isfinite(offset)):
+                raise ValueError(f"options['offset'] must be 2 finite numbers (dx, dy) in m, got {offset!r}")
+            self._start_pose(d, offset)
+            depth = self._overlap(d)
+            if depth > OVERLAP_TOLERANCE:
+                raise ValueError(f"{self.object_spec.name} at offset ({offset[0]:+.4f}, {offset[1]:+.4f}) m starts "
+                                 f"{depth * 1000:.1f} mm inside the pre-grasp hand; choose a clear placement "
+                                 "(FunctionalGraspEnv.overlap tells)")
         self.offset = offset
         self.object_start = self._object_pos.copy()
         self.base_target = self.label.pregrasp.base.copy()
@@ -293,6 +310,39 @@ class FunctionalGraspEnv(gym.Env):
         """Goal base joint values for an object displaced by (dx, dy): what an oracle would aim at."""
         shift = self.slides.T @ np.array([offset[0], offset[1], 0.0])
         return self.label.goal.base + np.concatenate([shift, np.zeros(3)])
+
+    def is_clear(self, offset) -> bool:
+        """Whether an episode can start with the object at `offset` (see `reset`)."""
+        return self.overlap(offset) <= OVERLAP_TOLERANCE
+
+    def overlap(self, offset) -> float:
+        """How deep (m) the pre-grasp hand would start inside the object shifted by `offset`; 0 if
+        clear. Uses a scratch MjData: the running episode is not touched."""
+        if self._probe is None:
+            self._probe = mujoco.MjData(self.model)
+        self._start_pose(self._probe, np.asarray(offset, dtype=float))
+        return self._overlap(self._probe)
+
+    def _start_pose(self, d: mujoco.MjData, offset: np.ndarray) -> None:
+        """Pre-grasp hand, object at rest at `offset`, servos holding the pre-grasp; kinematics done."""
+        m, ix = self.model, self.ix
+        mujoco.mj_resetData(m, d)
+        d.qpos[ix.all_qpos] = self.label.pregrasp.q
+        d.qpos[ix.object_qpos : ix.object_qpos + 3] = (offset[0], offset[1], self._rest_z)
+        d.qpos[ix.object_qpos + 3 : ix.object_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
+        d.ctrl[ix.base_act] = self.label.pregrasp.base
+        d.ctrl[ix.hand_act] = self._J0
+        mujoco.mj_forward(m, d)
+
+    def _overlap(self, d: mujoco.MjData) -> float:
+        """Deepest hand-object penetration among `d`'s contacts (m), 0 if none."""
+        n = d.ncon
+        if n == 0:
+            return 0.0
+        g1, g2, dist = d.contact.geom1[:n], d.contact.geom2[:n], d.contact.dist[:n]
+        hand_object = (np.isin(g1, self.ix.hand_geoms) & np.isin(g2, self.ix.object_geoms)) | (
+            np.isin(g2, self.ix.hand_geoms) & np.isin(g1, self.ix.object_geoms))
+        return float(max(0.0, -dist[hand_object].min())) if hand_object.any() else 0.0
 
     def render(self):
         if self.render_mode != "rgb_array":

@@ -33,13 +33,20 @@ class Placement:
     offset: tuple[float, float]
 
 
-def placements(seed: int, count: int, jitter: float, stream: str = "eval") -> list[Placement]:
+def placements(seed: int, count: int, jitter: float, stream: str = "eval",
+               clear: Callable[[tuple[float, float]], bool] | None = None) -> list[Placement]:
     """``count`` object offsets uniform in ``[-jitter, jitter]^2`` and episode seeds, fixed by
-    ``(seed, stream)``: the first ``n`` placements do not depend on ``count``."""
+    ``(seed, stream)``: the first ``n`` placements do not depend on ``count``.
+
+    ``clear`` (e.g. `FunctionalGraspEnv.is_clear`) keeps only offsets where the pre-grasp hand
+    does not start inside the object, the distribution random resets draw from.
+    """
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), STREAMS[stream]]))
     out = []
     for i in range(int(count)):
         dx, dy = rng.uniform(-jitter, jitter, 2)
+        while clear is not None and not clear((float(dx), float(dy))):
+            dx, dy = rng.uniform(-jitter, jitter, 2)
         out.append(Placement(i, int(rng.integers(0, 2**31 - 1)), (float(dx), float(dy))))
     return out
 

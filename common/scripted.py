@@ -62,5 +62,12 @@ def success_rate(env: FunctionalGraspEnv, offsets, told: bool) -> tuple[float, l
     return float(np.mean([r["success"] for r in results])), results
 
 
-def jitter_offsets(n: int, jitter: float = 0.02, seed: int = 0) -> np.ndarray:
-    return np.random.default_rng(seed).uniform(-jitter, jitter, (n, 2))
+def jitter_offsets(n: int, jitter: float = 0.02, seed: int = 0, env: FunctionalGraspEnv | None = None) -> np.ndarray:
+    """``n`` offsets uniform in the ±jitter square; with `env`, only those it can start from (`is_clear`)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        offset = rng.uniform(-jitter, jitter, 2)
+        if env is None or env.is_clear(offset):
+            out.append(offset)
+    return np.array(out).reshape(n, 2)

@@ -134,7 +134,8 @@ class Trainer:
             if self.step % cfg.checkpoint_every == 0 or self.step == total_steps:
                 # The evaluator's protocol: deterministic policy, the same seeded placements each time.
                 scored = evaluate(self.eval_env, lambda o: self.sac.act(o, deterministic=True),
-                                  placements(cfg.sac.seed, cfg.eval_episodes, cfg.jitter))
+                                  placements(cfg.sac.seed, cfg.eval_episodes, cfg.jitter,
+                                             clear=self.eval_env.is_clear))
                 result = {"step": self.step, "return": scored.score, "success_rate": scored.success_rate}
                 history.append(result)
                 writer.add_scalar("eval/return", result["return"], self.step)

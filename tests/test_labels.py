@@ -8,9 +8,11 @@ import subprocess
 import sys
 
 import mujoco
+import numpy as np
 import pytest
 
 from forcegrasp.env import FunctionalGraspEnv
+from forcegrasp.evaluation import placements
 from forcegrasp.labeling import hand_object_clearance, hold_check
 from forcegrasp.labels import load_label
 from forcegrasp.objects import list_objects, load_object
@@ -56,13 +58,13 @@ def test_pregrasp_has_no_contact(name):
 def test_scripted_oracle_solves_jittered_placements(name):
     """Told the true offset, the straight approach succeeds on >= 95 % of 50 placements."""
     env = FunctionalGraspEnv(name)
-    rate, results = success_rate(env, jitter_offsets(50, seed=1), told=True)
+    rate, results = success_rate(env, jitter_offsets(50, seed=1, env=env), told=True)
     assert rate >= 0.95, [r["failure"] for r in results if not r["success"]]
 
 
 def test_blind_approach_is_worse_than_the_oracle():
     env = FunctionalGraspEnv("mug")
-    offsets = jitter_offsets(30, seed=2)
+    offsets = jitter_offsets(30, seed=2, env=env)
     told, _ = success_rate(env, offsets, told=True)
     blind, _ = success_rate(env, offsets, told=False)
     assert blind < told - 0.3
@@ -103,3 +105,35 @@ def test_label_command_works_for_a_user_added_object(tmp_path):
 def test_label_command_rejects_unknown_object():
     out = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "label", "teapot"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 2 and "valid objects" in out.stderr
+
+
+@pytest.mark.parametrize("name", OBJECTS)
+def test_random_resets_never_start_inside_the_object(name):
+    """Near the +x edge of the ±2 cm square the pre-grasp fingers would start up to 5.6 mm inside
+    some objects (drill and spray bottle along a whole edge); random resets must redraw those."""
+    env = FunctionalGraspEnv(name)
+    for seed in range(200):
+        _, info = env.reset(seed=seed)
+        assert np.abs(info["offset"]).max() <= env.jitter
+        assert hand_object_clearance(env.model, env.data, env.ix) > -1e-4, (seed, info["offset"])
+
+
+def test_an_explicit_offset_inside_the_hand_is_refused_and_measured():
+    env = FunctionalGraspEnv("mug")
+    assert env.overlap((0.0, 0.0)) == 0.0 and env.is_clear((0.0, 0.0))
+    assert env.overlap((0.02, 0.02)) > 0.004 and not env.is_clear((0.02, 0.02))
+    env.reset(seed=0)
+    qpos = env.data.qpos.copy()
+    env.overlap((0.02, 0.02))  # probes a scratch copy: the episode is untouched
+    np.testing.assert_array_equal(env.data.qpos, qpos)
+    with pytest.raises(ValueError, match=r"mm inside the pre-grasp hand"):
+        env.reset(options={"offset": (0.02, 0.02)})
+
+
+def test_evaluation_placements_skip_offsets_inside_the_hand():
+    env = FunctionalGraspEnv("power_drill")
+    raw = placements(3, 100, 0.02, "rank")
+    assert not all(env.is_clear(p.offset) for p in raw)  # the filter has something to do
+    kept = placements(3, 100, 0.02, "rank", clear=env.is_clear)
+    assert all(env.is_clear(p.offset) for p in kept) and len(kept) == 100
+    assert placements(3, 10, 0.02, "rank", clear=env.is_clear) == kept[:10]  # still prefix-stable

@@ -81,15 +81,16 @@ class EvaluatorService:
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock_file = self._take_lock()
         ev = config.evaluator
-        self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval")
-        self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank")
+        self.env = None
+        clear = self._ensure_env().is_clear
+        self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval", clear)
+        self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank", clear)
         self.top = TopK(self.dir / "top", ev.top_k, run=config.run.name)
         self.top.crash_hook = _crash_hook_from_env()
         self.log_episodes = log_episodes
         self.mcap_backend = mcap_backend
         self.scan_every = scan_every
         self.stats_every = stats_every
-        self.env = None
         self._score_fn = score_fn or self._rollouts
         self.counters = Counters()
         self.rejects = RejectCounter()
