@@ -127,6 +127,8 @@ class EvaluatorConfig:
     eval_episodes: int = _f(10, "episodes per periodic evaluation", min=1)
     top_k: int = _f(5, "best checkpoints kept", min=1)
     final_rank_episodes: int = _f(100, "episodes per top-k checkpoint in the final ranking", min=1)
+    keep_episode_logs: str = _f("top", "MCAP episode logs kept: of the top-k checkpoints and the latest, or all",
+                                choices=("top", "all"))
     http_host: str = _f("127.0.0.1", "address of the evaluator's HTTP page")
     http_port: int = _f(8080, "port of the evaluator's HTTP page (0: any free port)", min=0)
 

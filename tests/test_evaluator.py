@@ -538,3 +538,27 @@ def test_http_serves_best_and_top_and_refuses_everything_else(http_server):
         fetch_best_http(f"http://127.0.0.1:{port}", run="nope")
     with pytest.raises(BestFetchError, match="cannot connect"):
         fetch_best_http("http://127.0.0.1:9", timeout=2)
+
+
+@pytest.mark.parametrize("keep", ["top", "all"])
+def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
+    """Real rollouts and MCAP files: with keep_episode_logs="top" the logs of a checkpoint go once
+    it is neither in the top k nor the latest evaluated; with "all" every log stays."""
+    config = tiny_config(tmp_path, **{"evaluator.top_k": 2, "evaluator.keep_episode_logs": keep})
+    steps = [1000, 2000, 3000, 4000, 5000]
+    for i, s in enumerate(steps):  # different constant actions: different scores
+        write_checkpoint(config, s, policy_bytes(config, s, speed=[0.0, 0.9, 0.3, 0.6, 0.1][i]))
+    with EvaluatorService(config) as service:
+        service.load()
+        while (nxt := service.next_checkpoint()) is not None:
+            service.process(*nxt)
+            logged = sorted(int(p.name) for p in service.episodes_dir.iterdir())
+            assert all(any((service.episodes_dir / f"{s:09d}").glob("*.mcap")) for s in logged)
+            seen = [s for s in steps if s <= nxt[0]]
+            if keep == "all":
+                assert logged == seen
+            else:
+                assert logged == sorted({m.step for m in service.top.members} | {nxt[0]})
+        assert service.stats()["pruned_logs"] == (0 if keep == "all" else len(steps) - len(logged))
+    if keep == "top":
+        assert len(logged) < len(steps)  # something was pruned
