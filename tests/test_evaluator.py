@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import http.client
 import importlib.util
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -562,3 +563,28 @@ def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
         assert service.stats()["pruned_logs"] == (0 if keep == "all" else len(steps) - len(logged))
     if keep == "top":
         assert len(logged) < len(steps)  # something was pruned
+
+
+def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
+    """Stored scores are only comparable on the same placements: if the way placements are drawn
+    changes (here: every offset shifted, with the same config), a restart re-scores the members."""
+    import forcegrasp.services.evaluator.evaluator as evaluator_module
+
+    config = tiny_config(tmp_path)
+    for s in (1000, 2000):
+        write_checkpoint(config, s, policy_bytes(config, s, fake={"eval": s / 1000, "rank": 0.0}))
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+        service.load()
+        while (nxt := service.next_checkpoint()) is not None:
+            service.process(*nxt)
+        assert service.counters.rank_evaluations == 2
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+        service.load()  # same placements: the stored scores stand
+        assert service.counters.rank_evaluations == 0
+    original = evaluator_module.placements
+    shifted = lambda *a, **k: [dataclasses.replace(p, offset=(p.offset[0] * 0.5, p.offset[1])) for p in original(*a, **k)]
+    monkeypatch.setattr(evaluator_module, "placements", shifted)
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+        service.load()
+        assert service.counters.rank_evaluations == 2  # both members scored again
+        assert [m.step for m in service.top.members] == [2000, 1000]

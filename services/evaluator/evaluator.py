@@ -21,6 +21,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import fcntl
+import hashlib
+import json
 import logging
 import os
 import queue
@@ -141,7 +143,11 @@ class EvaluatorService:
         return {"object": e.object, "force_feedback": e.force_feedback, "mass_scale": e.mass_scale,
                 "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
-                "final_rank_episodes": ev.final_rank_episodes}
+                "final_rank_episodes": ev.final_rank_episodes,
+                # the placements themselves: a change in how they are drawn (e.g. which offsets
+                # are clear of the hand) invalidates scores as surely as a changed setting
+                "placements": hashlib.sha256(json.dumps(
+                    [[p.seed, *p.offset] for p in self.eval_places + self.rank_places]).encode()).hexdigest()[:16]}
 
     def load(self) -> None:
         """Reload the top k (verifying every file), re-score it if the protocol changed, scan."""
