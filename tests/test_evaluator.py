@@ -588,3 +588,19 @@ def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
         service.load()
         assert service.counters.rank_evaluations == 2  # both members scored again
         assert [m.step for m in service.top.members] == [2000, 1000]
+
+
+def test_once_scores_a_finished_run_and_exits(tmp_path, capsys):
+    """`forcegrasp evaluator --once`: evaluate what is on disk, print the top k, exit (no network)."""
+    from forcegrasp.services.evaluator.evaluator import main
+
+    config = tiny_config(tmp_path, **{"evaluator.top_k": 2})
+    for i, s in enumerate((1000, 2000, 3000)):
+        write_checkpoint(config, s, policy_bytes(config, s, speed=[0.0, 0.8, 0.4][i]))
+    overrides = [f"run.name={config.run.name}", f"run.output_dir={config.run.output_dir}", "env.object=camera",
+                 "env.max_steps=20", "evaluator.eval_every=1000", "evaluator.eval_episodes=2",
+                 "evaluator.final_rank_episodes=3", "evaluator.top_k=2", "evaluator.http_port=0"]
+    assert main(["--once", "--no-mcap", *[a for o in overrides for a in ("--set", o)]]) == 0
+    top = json.loads(capsys.readouterr().out)
+    assert top["evaluations"] == 3 and len(top["members"]) == 2
+    assert top["members"] == topk.check_folder(top_dir(config), k=2)["members"]

@@ -516,6 +516,9 @@ def main(argv=None) -> int:
     parser.add_argument("--no-mcap", action="store_true", help="do not write MCAP episode logs")
     parser.add_argument("--mcap-backend", choices=("auto", "sdk", "mcap"), default="auto",
                         help="MCAP writer: foxglove-sdk, the pure-Python mcap package, or auto (sdk if installed)")
+    parser.add_argument("--once", action="store_true",
+                        help="evaluate the checkpoints already on disk (re-scoring the top k if the protocol changed), "
+                             "print the top k and exit; no network (e.g. to score a finished run)")
     add_config_arguments(parser)
     args = parser.parse_args(argv)
     config = config_from_args(args)
@@ -532,7 +535,14 @@ def main(argv=None) -> int:
              args.id, config.run.name, config.env.object, ev.eval_every, ev.eval_episodes, ev.top_k,
              ev.final_rank_episodes, service.checkpoint_dir)
     try:
-        service.run(stop)
+        if args.once:
+            service._stop = stop
+            service.load()
+            while not stop.is_set() and service.poll_once():
+                pass
+            print(json.dumps(service.top.to_json(with_history=False), indent=1))
+        else:
+            service.run(stop)
     finally:
         service.close()
     log.info("evaluator %s: stopped after %d evaluations", args.id, service.counters.evaluations)
