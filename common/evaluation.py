@@ -6,8 +6,9 @@ policy acts deterministically (tanh of the mean), the env is deterministic for a
 offset, so a score is reproducible: a restarted evaluator, or a final ranking computed for one
 checkpoint and cached, gives the same number as a fresh run.
 
-Streams: ``"eval"`` (``evaluator.eval_episodes`` placements, the periodic test) and ``"rank"``
-(``evaluator.final_rank_episodes`` placements, the final selection among the top k).
+Streams: ``"eval"`` (``evaluator.eval_episodes`` placements, the periodic test), ``"rank"``
+(``evaluator.final_rank_episodes`` placements, the final selection among the top k), and ``"test"``
+(``forcegrasp eval``: held out from any selection).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import Callable
 
 import numpy as np
 
-STREAMS = {"eval": 1, "rank": 2}
+STREAMS = {"eval": 1, "rank": 2, "test": 3}
 
 
 class Interrupted(Exception):

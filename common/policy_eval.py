@@ -1,0 +1,144 @@
+"""``forcegrasp eval POLICY``: test a trained policy on held-out placements, sweeping one env setting.
+
+This is how the paper tests a policy after training:
+- lighter objects: ``--sweep mass_scale=5,1,0.5 --env object_tolerance=0.03``;
+- joint-torque noise: ``--sweep torque_noise_std=0,0.1,0.2,...,1``.
+
+POLICY is a policy file, or a run directory, whose evaluator's best checkpoint is then used. The
+object and the force-feedback setting come from the policy's metadata. The placements are the
+``"test"`` stream, drawn like the evaluator's but never used to select a checkpoint, so the
+figures are not inflated by the selection. Every sweep value sees the same placements (unless
+the jitter itself is swept). The policy acts deterministically (tanh of the mean).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+SWEEPABLE = ("mass_scale", "torque_noise_std", "jitter", "object_tolerance", "palm_tolerance")
+
+
+def resolve_policy(path: Path) -> Path:
+    """A policy file as given, or a run directory's best checkpoint (its evaluator's top k)."""
+    if path.is_file():
+        return path
+    index = path / "evaluator" / "top" / "index.json"
+    if path.is_dir() and index.is_file():
+        best = json.loads(index.read_text()).get("best")
+        if best:
+            return index.parent / best
+    raise FileNotFoundError(f"{path}: neither a policy file nor a run directory with an evaluated best checkpoint")
+
+
+def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
+    key, sep, values = text.partition("=")
+    key = key.strip().removeprefix("env.")
+    if not sep or key not in SWEEPABLE:
+        raise ValueError(f"{text!r}: expected KEY=VALUE{',VALUE...' if many else ''} with KEY one of {', '.join(SWEEPABLE)}")
+    try:
+        numbers = [float(v) for v in values.split(",")] if many else [float(values)]
+    except ValueError:
+        raise ValueError(f"{text!r}: values must be numbers") from None
+    return key, numbers
+
+
+def test_policy(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
+                log=print) -> list[dict]:
+    """One row per sweep value: success rate, mean return and failure counts over the placements."""
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.evaluation import placements, run_episode
+    from forcegrasp.policy import Policy
+
+    policy = Policy.load(policy_path)
+    meta = policy.metadata
+    if not meta.object_name:
+        raise ValueError(f"{policy_path}: the policy's metadata names no object")
+    key, values = sweep if sweep else (None, [None])
+    rows = []
+    for value in values:
+        kwargs = dict(fixed)
+        if key is not None:
+            kwargs[key] = value
+        env = FunctionalGraspEnv(meta.object_name, force_feedback=meta.force_feedback, **kwargs)
+        if env.observation_space.shape[0] != meta.obs_dim:
+            raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
+                             f"{env.observation_space.shape[0]}")
+        t0 = time.perf_counter()
+        results = [run_episode(env, policy, p)
+                   for p in placements(seed, episodes, env.jitter, "test", clear=env.is_clear)]
+        row = {"setting": key, "value": value, "episodes": len(results),
+               "success_rate": sum(r.success for r in results) / len(results),
+               "mean_return": sum(r.ret for r in results) / len(results),
+               "failures": dict(Counter(r.failure for r in results if not r.success)),
+               "env": {k: getattr(env, k) for k in ("mass_scale", "torque_noise_std", "jitter", "object_tolerance")},
+               "seconds": round(time.perf_counter() - t0, 1)}
+        rows.append(row)
+        log(f"{key or 'settings'} = {value if key else kwargs or 'defaults'}: success {row['success_rate']:.0%}, "
+            f"return {row['mean_return']:.1f}, failures {row['failures']} ({row['seconds']} s)")
+    return rows
+
+
+def plot_rows(rows: list[dict], out: Path, title: str) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot([r["value"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o")
+    ax.set(xlabel=rows[0]["setting"], ylabel="success rate (%)", ylim=(-3, 103), title=title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="forcegrasp eval", description=__doc__.splitlines()[0],
+                                     epilog="e.g. forcegrasp eval runs/mug --sweep mass_scale=5,1,0.5 --env object_tolerance=0.03")
+    parser.add_argument("policy", type=Path, help="policy file, or a run directory (its evaluator's best checkpoint)")
+    parser.add_argument("--episodes", type=int, default=100, help="placements per setting (default 100)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the test placements (default 0)")
+    parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                        help=f"fixed env setting, repeatable; KEY one of {', '.join(SWEEPABLE)}")
+    parser.add_argument("--sweep", metavar="KEY=V1,V2,...", help="test at each value of one env setting")
+    parser.add_argument("--json", type=Path, help="write the rows as JSON")
+    parser.add_argument("--plot", type=Path, help="PNG of success rate against the swept setting")
+    args = parser.parse_args(argv)
+    try:
+        fixed = dict((k, v[0]) for k, v in (parse_setting(s, many=False) for s in args.env))
+        sweep = parse_setting(args.sweep, many=True) if args.sweep else None
+        if args.episodes < 1:
+            raise ValueError("--episodes must be at least 1")
+        if args.plot and not sweep:
+            raise ValueError("--plot needs --sweep")
+        policy_path = resolve_policy(args.policy)
+    except (ValueError, FileNotFoundError) as exc:
+        parser.exit(2, f"forcegrasp eval: {exc}\n")
+    print(f"policy {policy_path}, {args.episodes} test placements per setting", flush=True)
+    try:
+        rows = test_policy(policy_path, args.episodes, args.seed, fixed, sweep,
+                           log=lambda line: print(line, flush=True))
+    except ValueError as exc:
+        parser.exit(2, f"forcegrasp eval: {exc}\n")
+    print()
+    print(f"| {rows[0]['setting'] or 'settings'} | success | mean return | failures |")
+    print("|---|---:|---:|---|")
+    for r in rows:
+        print(f"| {r['value'] if r['setting'] else 'as given'} | {r['success_rate']:.0%} | {r['mean_return']:.1f} | "
+              f"{', '.join(f'{k}: {n}' for k, n in sorted(r['failures'].items(), key=str)) or '-'} |")
+    if args.json:
+        args.json.write_text(json.dumps({"policy": str(policy_path), "rows": rows}, indent=1))
+    if args.plot:
+        print(f"wrote {plot_rows(rows, args.plot, policy_path.name)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
