@@ -71,7 +71,8 @@ def test_policy(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep:
         t0 = time.perf_counter()
         results = [run_episode(env, policy, p)
                    for p in placements(seed, episodes, env.jitter, "test", clear=env.is_clear)]
-        row = {"setting": key, "value": value, "episodes": len(results),
+        row = {"object": meta.object_name, "force_feedback": meta.force_feedback,
+               "setting": key, "value": value, "episodes": len(results),
                "success_rate": sum(r.success for r in results) / len(results),
                "mean_return": sum(r.ret for r in results) / len(results),
                "failures": dict(Counter(r.failure for r in results if not r.success)),
@@ -136,7 +137,10 @@ def main(argv=None) -> int:
     if args.json:
         args.json.write_text(json.dumps({"policy": str(policy_path), "rows": rows}, indent=1))
     if args.plot:
-        print(f"wrote {plot_rows(rows, args.plot, policy_path.name)}")
+        r = rows[0]
+        title = (f"{r['object']}, force feedback {'on' if r['force_feedback'] else 'off'}: {policy_path.name}\n"
+                 f"{r['episodes']} held-out placements per point")
+        print(f"wrote {plot_rows(rows, args.plot, title)}")
     return 0
 
 
