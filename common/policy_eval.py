@@ -47,7 +47,7 @@ def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
     return key, numbers
 
 
-def test_policy(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
+def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
                 log=print) -> list[dict]:
     """One row per sweep value: success rate, mean return and failure counts over the placements."""
     from forcegrasp.env import FunctionalGraspEnv
@@ -124,7 +124,7 @@ def main(argv=None) -> int:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
     print(f"policy {policy_path}, {args.episodes} test placements per setting", flush=True)
     try:
-        rows = test_policy(policy_path, args.episodes, args.seed, fixed, sweep,
+        rows = evaluate_settings(policy_path, args.episodes, args.seed, fixed, sweep,
                            log=lambda line: print(line, flush=True))
     except ValueError as exc:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
