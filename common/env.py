@@ -218,12 +218,12 @@ class FunctionalGraspEnv(gym.Env):
             offset = np.asarray(offset, dtype=float)
             if offset.shape != (2,) or not np.all(np.isfinite(offset)):
                 raise ValueError(f"options['offset'] must be 2 finite numbers (dx, dy) in m, got {offset!r}")
-            self._start_pose(d, offset)
-            depth = self._overlap(d)
+            depth = self.overlap(offset)  # on the scratch data: a refused reset leaves the episode as it was
             if depth > OVERLAP_TOLERANCE:
                 raise ValueError(f"{self.object_spec.name} at offset ({offset[0]:+.4f}, {offset[1]:+.4f}) m starts "
                                  f"{depth * 1000:.1f} mm inside the pre-grasp hand; choose a clear placement "
                                  "(FunctionalGraspEnv.overlap tells)")
+            self._start_pose(d, offset)
         self.offset = offset
         self.object_start = self._object_pos.copy()
         self.base_target = self.label.pregrasp.base.copy()

@@ -128,6 +128,7 @@ def test_an_explicit_offset_inside_the_hand_is_refused_and_measured():
     np.testing.assert_array_equal(env.data.qpos, qpos)
     with pytest.raises(ValueError, match=r"mm inside the pre-grasp hand"):
         env.reset(options={"offset": (0.02, 0.02)})
+    np.testing.assert_array_equal(env.data.qpos, qpos)  # refused: the episode is as it was
 
 
 def test_evaluation_placements_skip_offsets_inside_the_hand():
