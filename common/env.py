@@ -62,6 +62,17 @@ OVERLAP_TOLERANCE = 1e-4
 MAX_OFFSET_DRAWS = 100
 
 
+def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, what: str = "the object") -> np.ndarray:
+    """An offset (dx, dy) uniform in the ±jitter square, redrawn while ``is_clear(offset)`` says no:
+    the one sampling rule of random resets, evaluation placements and the scripted benches."""
+    for _ in range(MAX_OFFSET_DRAWS):
+        offset = rng.uniform(-jitter, jitter, 2)
+        if is_clear is None or is_clear(offset):
+            return offset
+    raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
+                       "in a row; relabel the pre-grasp")
+
+
 def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
     return OBS_LAYOUT if force_feedback else OBS_LAYOUT[1:]
 
@@ -203,17 +214,10 @@ class FunctionalGraspEnv(gym.Env):
         An explicit offset with an overlap is refused with ValueError.
         """
         super().reset(seed=seed)
-        m, d, ix = self.model, self.data, self.ix
+        d = self.data
         offset = (options or {}).get("offset")
         if offset is None:
-            for _ in range(MAX_OFFSET_DRAWS):
-                offset = self.np_random.uniform(-self.jitter, self.jitter, 2)
-                self._start_pose(d, offset)
-                if self._overlap(d) <= OVERLAP_TOLERANCE:
-                    break
-            else:
-                raise RuntimeError(f"{self.object_spec.name}: the pre-grasp hand overlaps the object at "
-                                   f"{MAX_OFFSET_DRAWS} random offsets in a row; relabel the pre-grasp")
+            offset = draw_clear_offset(self.np_random, self.jitter, self.is_clear, self.object_spec.name)
         else:
             offset = np.asarray(offset, dtype=float)
             if offset.shape != (2,) or not np.all(np.isfinite(offset)):
@@ -223,7 +227,7 @@ class FunctionalGraspEnv(gym.Env):
                 raise ValueError(f"{self.object_spec.name} at offset ({offset[0]:+.4f}, {offset[1]:+.4f}) m starts "
                                  f"{depth * 1000:.1f} mm inside the pre-grasp hand; choose a clear placement "
                                  "(FunctionalGraspEnv.overlap tells)")
-            self._start_pose(d, offset)
+        self._start_pose(d, offset)
         self.offset = offset
         self.object_start = self._object_pos.copy()
         self.base_target = self.label.pregrasp.base.copy()

@@ -42,12 +42,12 @@ def placements(seed: int, count: int, jitter: float, stream: str = "eval",
     ``clear`` (e.g. `FunctionalGraspEnv.is_clear`) keeps only offsets where the pre-grasp hand
     does not start inside the object, the distribution random resets draw from.
     """
+    from forcegrasp.env import draw_clear_offset
+
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), STREAMS[stream]]))
     out = []
     for i in range(int(count)):
-        dx, dy = rng.uniform(-jitter, jitter, 2)
-        while clear is not None and not clear((float(dx), float(dy))):
-            dx, dy = rng.uniform(-jitter, jitter, 2)
+        dx, dy = draw_clear_offset(rng, jitter, clear)
         out.append(Placement(i, int(rng.integers(0, 2**31 - 1)), (float(dx), float(dy))))
     return out
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from forcegrasp.env import FunctionalGraspEnv
+from forcegrasp.env import FunctionalGraspEnv, draw_clear_offset
 
 
 class ScriptedApproach:
@@ -65,9 +65,4 @@ def success_rate(env: FunctionalGraspEnv, offsets, told: bool) -> tuple[float, l
 def jitter_offsets(n: int, jitter: float = 0.02, seed: int = 0, env: FunctionalGraspEnv | None = None) -> np.ndarray:
     """``n`` offsets uniform in the ±jitter square; with `env`, only those it can start from (`is_clear`)."""
     rng = np.random.default_rng(seed)
-    out = []
-    while len(out) < n:
-        offset = rng.uniform(-jitter, jitter, 2)
-        if env is None or env.is_clear(offset):
-            out.append(offset)
-    return np.array(out).reshape(n, 2)
+    return np.array([draw_clear_offset(rng, jitter, env.is_clear if env else None) for _ in range(n)]).reshape(n, 2)
