@@ -9,7 +9,6 @@ Overlaying runs compares them, e.g. with and without force feedback (the paper's
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 PANELS = (
@@ -34,10 +33,12 @@ def read_scalars(tb_dir: Path) -> dict[str, tuple[list[int], list[float]]]:
 
 def read_evaluations(run_dir: Path) -> dict[str, tuple[list[int], list[float]]]:
     """The evaluator's history (every evaluated checkpoint's test score), if the run has one."""
-    index = run_dir / "evaluator" / "top" / "index.json"
-    if not index.is_file():
+    from forcegrasp.services.evaluator.topk import read_run_index
+
+    index = read_run_index(run_dir)
+    if index is None:
         return {}
-    history = sorted(json.loads(index.read_text()).get("history", []), key=lambda h: h["step"])
+    history = sorted(index.get("history", []), key=lambda h: h["step"])
     steps = [int(h["step"]) for h in history]
     return {"eval/score": (steps, [float(h["score"]) for h in history]),
             "eval/success_rate": (steps, [float(h["success_rate"]) for h in history])}

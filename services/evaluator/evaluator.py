@@ -44,7 +44,8 @@ from forcegrasp.services.evaluator.endpoint import (
     declare_best_queryable,
 )
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
-from forcegrasp.services.evaluator.topk import MAX_POLICY_BYTES, Member, TopK, policy_file_name, sha256, step_of
+from forcegrasp.services.evaluator.topk import (MAX_POLICY_BYTES, Member, TopK, policy_file_name, sha256, step_of,
+                                               top_folder)
 
 log = logging.getLogger("forcegrasp.evaluator")
 
@@ -80,7 +81,7 @@ class EvaluatorService:
         self.keys = Keys(config.run.name)
         self.run_dir = Path(config.run.output_dir) / config.run.name
         self.checkpoint_dir = self.run_dir / "checkpoints"
-        self.dir = self.run_dir / "evaluator"
+        self.dir = top_folder(self.run_dir).parent
         self.episodes_dir = self.dir / "episodes"
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock_file = self._take_lock()
@@ -89,7 +90,7 @@ class EvaluatorService:
         clear = self._ensure_env().is_clear
         self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval", clear)
         self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank", clear)
-        self.top = TopK(self.dir / "top", ev.top_k, run=config.run.name)
+        self.top = TopK(top_folder(self.run_dir), ev.top_k, run=config.run.name)
         self.top.crash_hook = _crash_hook_from_env()
         self.log_episodes = log_episodes
         self.mcap_backend = mcap_backend

@@ -48,6 +48,17 @@ MAX_POLICY_BYTES = 256 * 1024 * 1024
 HISTORY_LIMIT = 100_000
 
 
+def top_folder(run_dir: str | os.PathLike) -> Path:
+    """Where a run's evaluator keeps its top k: ``<run_dir>/evaluator/top``."""
+    return Path(run_dir) / "evaluator" / "top"
+
+
+def read_run_index(run_dir: str | os.PathLike) -> dict | None:
+    """A run's top-k index, read-only (plots, ``forcegrasp eval``); None if it has none yet."""
+    path = top_folder(run_dir) / INDEX_NAME
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
 def policy_file_name(step: int) -> str:
     return f"policy-{int(step):09d}.safetensors"
 
