@@ -137,7 +137,7 @@ def test_eval_every_spacing_and_restart_continues(tmp_path):
     for s in steps:
         write_checkpoint(config, s, policy_bytes(config, s, fake={"eval": s / 1000, "rank": 0.0}))
     evaluated = []
-    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, newest_first=False) as service:
         service.load()
         nxt = service.next_checkpoint()
         evaluated.append(nxt[0])
@@ -145,7 +145,7 @@ def test_eval_every_spacing_and_restart_continues(tmp_path):
         service.process(*service.next_checkpoint())  # 2000: 1500 is too close to 1000
         evaluated.append(service.top.last_step)
     # A restarted evaluator reloads the index and goes on from the last evaluated step.
-    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, newest_first=False) as service:
         service.load()
         assert service.top.last_step == 2000
         while (nxt := service.next_checkpoint()) is not None:
@@ -155,6 +155,21 @@ def test_eval_every_spacing_and_restart_continues(tmp_path):
     assert evaluated == [1000, 2000, 3000, 4000]
 
 
+def test_the_service_follows_the_front_of_training(tmp_path):
+    """A live evaluator behind training takes the newest checkpoint and skips the backlog."""
+    config = tiny_config(tmp_path)
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, scan_every=1e9) as service:
+        service.load()
+        write_checkpoint(config, 1000, policy_bytes(config, 1000, fake={"eval": 1.0, "rank": 1.0}))
+        service.scan()
+        service.process(*service.next_checkpoint())
+        for s in (2000, 3000, 4000, 4500):
+            write_checkpoint(config, s, policy_bytes(config, s, fake={"eval": 1.0, "rank": 1.0}))
+        service.scan()
+        assert service.next_checkpoint()[0] == 4500
+        assert service.counters.skipped == 3 and service.next_checkpoint() is None
+
+
 def test_an_announcement_never_overtakes_older_unseen_checkpoints(tmp_path):
     """An evaluator that connects late misses announcements; the folder still has the files.
     When a newer announcement arrives, the older files must be evaluated first (else the
@@ -162,7 +177,8 @@ def test_an_announcement_never_overtakes_older_unseen_checkpoints(tmp_path):
     from forcegrasp.protocol import Checkpoint, encode_checkpoint
 
     config = tiny_config(tmp_path)
-    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, scan_every=1e9) as service:
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, scan_every=1e9,
+                          newest_first=False) as service:
         service.load()  # the folder is still empty
         for s in (1000, 2000, 3000):
             write_checkpoint(config, s, policy_bytes(config, s, fake={"eval": 1.0, "rank": 1.0}))
@@ -222,7 +238,7 @@ def test_bad_checkpoints_are_rejected_and_the_service_goes_on(tmp_path):
     no_ff = tiny_config(tmp_path, **{"env.force_feedback": "false"})
     write_checkpoint(config, 3000, policy_bytes(no_ff, 3000, fake={"eval": 1.0, "rank": 1.0}))
     write_checkpoint(config, 4000, policy_bytes(config, 4000, fake={"eval": 1.0, "rank": 1.0}))
-    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, newest_first=False) as service:
         service.load()
         while (nxt := service.next_checkpoint()) is not None:
             service.process(*nxt)
@@ -549,7 +565,7 @@ def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
     steps = [1000, 2000, 3000, 4000, 5000]
     for i, s in enumerate(steps):  # different constant actions: different scores
         write_checkpoint(config, s, policy_bytes(config, s, speed=[0.0, 0.9, 0.3, 0.6, 0.1][i]))
-    with EvaluatorService(config) as service:
+    with EvaluatorService(config, newest_first=False) as service:
         service.load()
         while (nxt := service.next_checkpoint()) is not None:
             service.process(*nxt)
@@ -573,7 +589,7 @@ def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
     config = tiny_config(tmp_path)
     for s in (1000, 2000):
         write_checkpoint(config, s, policy_bytes(config, s, fake={"eval": s / 1000, "rank": 0.0}))
-    with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
+    with EvaluatorService(config, score_fn=fake_score, log_episodes=False, newest_first=False) as service:
         service.load()
         while (nxt := service.next_checkpoint()) is not None:
             service.process(*nxt)

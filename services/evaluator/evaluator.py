@@ -7,7 +7,8 @@ serves the best policy (Zenoh queryable and read-only HTTP).
   restarted evaluator or a missed message loses nothing. Announced paths are only hints: files
   are read from this run's own checkpoints folder, by their ``policy-<step>.safetensors`` name.
 - A checkpoint is evaluated if it is at least ``evaluator.eval_every`` learner steps after the
-  last one evaluated (oldest first); ``evaluator.eval_episodes`` deterministic episodes on
+  last one evaluated; the service takes the newest such (it follows training's front and skips
+  what it cannot keep up with), ``--once`` every one, oldest first; ``evaluator.eval_episodes`` deterministic episodes on
   placements fixed by ``run.seed``; the score is the mean return (success rate recorded too).
 - Top k (``evaluator.top_k``) in ``<output_dir>/<run>/evaluator/top/`` (see ``topk.py`` for the
   crash-safety rules); a newcomer is scored on ``evaluator.final_rank_episodes`` ranking
@@ -75,8 +76,9 @@ class Counters:
 class EvaluatorService:
     def __init__(self, config: Config, instance: str = "0", *, score_fn: ScoreFn | None = None,
                  log_episodes: bool = True, scan_every: float = 10.0, stats_every: float = 2.0,
-                 mcap_backend: str = "auto"):
+                 mcap_backend: str = "auto", newest_first: bool = True):
         self.config = config
+        self.newest_first = newest_first
         self.instance = instance
         self.keys = Keys(config.run.name)
         self.run_dir = Path(config.run.output_dir) / config.run.name
@@ -107,6 +109,8 @@ class EvaluatorService:
         self.current: int | None = None
         self._stop = threading.Event()
         self._t0 = self._last_scan = time.monotonic()
+        self.writer = None  # TensorBoard, opened by run(): the evaluator's figures beside the learner's
+        self.last_result: tuple[int, EvalResult] | None = None
 
     # ------------------------------------------------------------------ start-up
     def _take_lock(self):
@@ -220,13 +224,28 @@ class EvaluatorService:
         return step not in self.failed and (last is None or step >= last + self.config.evaluator.eval_every)
 
     def next_checkpoint(self) -> tuple[int, Path] | None:
-        """The oldest pending checkpoint far enough after the last evaluated one."""
-        for step in sorted(self.pending):
+        """The next pending checkpoint far enough after the last evaluated one.
+
+        Newest first (the service): an evaluator slower than training follows its front and skips
+        what it cannot keep up with, instead of working through a growing backlog of stale
+        checkpoints while it serves an old best. Oldest first (``--once``, scoring a finished
+        run): every checkpoint ``eval_every`` apart is evaluated.
+        """
+        order = sorted(self.pending, reverse=self.newest_first)
+        chosen = None
+        for step in order:
+            if chosen is not None and self.newest_first:
+                del self.pending[step]  # older than the one chosen: it would never be wanted
+                self.counters.skipped += 1
+                continue
+            if chosen is not None:
+                break
             path = self.pending.pop(step)
             if self._wanted(step):
-                return step, path
-            self.counters.skipped += 1
-        return None
+                chosen = (step, path)
+            else:
+                self.counters.skipped += 1
+        return chosen
 
     # ------------------------------------------------------------------ evaluating
     def _ensure_env(self):
@@ -297,6 +316,7 @@ class EvaluatorService:
             log.info("step %d: score %.2f, success %.0f%% over %d episodes (%.1f s)", step, result.score,
                      100 * result.success_rate, result.episodes, time.perf_counter() - t0)
             self.top.record(step, result.score, result.success_rate, result.episodes)
+            self.last_result = (step, result)
             member = None
             if self.top.would_enter(result.score, step):
                 member, blob = self._rank(step, weights, meta, policy, result)
@@ -307,6 +327,7 @@ class EvaluatorService:
                          self.top.best.file)
             self.top.commit()
             self.refresh_snapshot()
+            self._log_scalars(step, result)
             self._prune_episode_logs(latest=step)
             self.counters.evaluations += 1  # counted once on disk: stats never run ahead of the index
             return member
@@ -398,6 +419,18 @@ class EvaluatorService:
                 sha256=best_member.sha256, policy=data, time=time.time())
         self.snapshot = Snapshot.build(self.config.run.name, best, self.top.to_json(with_history=False))
 
+    def _log_scalars(self, step: int, result: EvalResult) -> None:
+        """Deterministic success of each evaluated checkpoint and of the current best, by learner
+        step, in the run's TensorBoard folder (next to the actors' online figures)."""
+        if self.writer is None:
+            return
+        self.writer.add_scalar("evaluator/checkpoint_success_rate", result.success_rate, step)
+        self.writer.add_scalar("evaluator/checkpoint_return", result.score, step)
+        best = self.top.best
+        if best is not None:
+            self.writer.add_scalar("evaluator/best_success_rate", best.rank_success_rate, step)
+        self.writer.flush()
+
     def _on_query(self, outcome: str) -> None:
         self.counters.queries += 1
         if outcome != "ok":
@@ -421,6 +454,10 @@ class EvaluatorService:
             "best_step": best.step if best else None,
             "best_score": best.rank_score if best else None,
             "best_success_rate": best.rank_success_rate if best else None,
+            "best_episodes": best.rank_episodes if best else None,
+            "latest_step": self.last_result[0] if self.last_result else None,
+            "latest_success_rate": self.last_result[1].success_rate if self.last_result else None,
+            "latest_episodes": self.last_result[1].episodes if self.last_result else None,
             "top_scores": {str(m.step): m.score for m in self.top.members},
             "top_rank_scores": {str(m.step): m.rank_score for m in self.top.members},
             "top_count": len(self.top.members),
@@ -448,9 +485,12 @@ class EvaluatorService:
         from forcegrasp.runtime import open_service_session
         from forcegrasp.transport import close_session, declare_publisher, declare_token
 
+        from torch.utils.tensorboard import SummaryWriter
+
         self._stop = stop
         self.load()
         self.start_http()
+        self.writer = SummaryWriter(str(self.run_dir / "tb"), filename_suffix=".evaluator")
         session = open_service_session(self.config, "evaluator")
         stats_thread = None
         try:
@@ -481,6 +521,7 @@ class EvaluatorService:
             if stats_thread is not None:
                 stats_thread.join(timeout=5)
             close_session(session)
+            self.writer.close()
             if self.http is not None:
                 self.http.stop()
 
@@ -530,7 +571,8 @@ def main(argv=None) -> int:
     configure_threads(1)  # one observation at a time: more threads only contend with the physics
     stop = stop_on_signals()
     service = EvaluatorService(config, args.id, log_episodes=not args.no_mcap, scan_every=args.scan_every,
-                               stats_every=args.stats_every, mcap_backend=args.mcap_backend)
+                               stats_every=args.stats_every, mcap_backend=args.mcap_backend,
+                               newest_first=not args.once)
     ev = config.evaluator
     log.info("evaluator %s: run %s, %s, every %d steps on %d episodes, top %d ranked on %d episodes, checkpoints in %s",
              args.id, config.run.name, config.env.object, ev.eval_every, ev.eval_episodes, ev.top_k,
