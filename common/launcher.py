@@ -23,18 +23,22 @@ from forcegrasp.transport import QueueSubscriber, close_session
 GRACE_S = 20.0
 
 
-def service_commands(config_path: Path, num_actors: int, evaluator: bool = True) -> dict[str, list[str]]:
+def service_commands(config_path: Path, num_actors: int, evaluator: bool = True, seed: int = 0) -> dict[str, list[str]]:
     py = [sys.executable, "-m"]
     commands = {"learner": py + ["forcegrasp.services.learner", "--config", str(config_path)]}
     for i in range(num_actors):
         commands[f"actor-{i}"] = py + ["forcegrasp.services.actor", "--config", str(config_path), "--id", f"actor-{i}",
-                                       "--seed", str(1000 * (i + 1))]
+                                       "--seed", str(seed + 1000 * (i + 1))]
     if evaluator:
         commands["evaluator"] = py + ["forcegrasp.services.evaluator", "--config", str(config_path)]
     return commands
 
 
 def progress_line(stats: dict) -> str:
+    """One line from the services' stats. Two success figures, labelled for what they are: the
+    actors' online rate (last 100 episodes, sampled actions, weights changing under them) and the
+    evaluator's deterministic tests (its latest checkpoint on its fixed placements, and the best's
+    final-ranking score): the figure a user gets from ``forcegrasp best``."""
     learner = stats.get("learner")
     if learner is None:
         return "waiting for the learner..."
@@ -44,11 +48,15 @@ def progress_line(stats: dict) -> str:
               if k not in ("learner", "evaluator")]
     ev = stats.get("evaluator")
     if ev is not None:
-        best = "-" if ev.get("best_score") is None else f"{ev['best_score']:.1f} (step {ev['best_step']})"
-        actors.append(f"| evaluated {ev.get('evaluations', 0)}, best {best}")
+        latest = ("-" if ev.get("latest_success_rate") is None else
+                  f"{ev['latest_success_rate']:.0%} of {ev.get('latest_episodes')} (step {ev.get('latest_step')})")
+        best = ("-" if ev.get("best_success_rate") is None else
+                f"{ev['best_success_rate']:.0%} of {ev.get('best_episodes')} (step {ev['best_step']})")
+        actors.append(f"| evaluator ({ev.get('evaluations', 0)} checkpoints): latest {latest}, best {best}")
     return (f"steps {learner['ingested']:>9}  updates {learner['updates']:>8} ({learner['updates_per_s']:.0f}/s)  "
-            f"v{learner['policy_version']}  return(100) {'-' if ret is None else f'{ret:.1f}'}  "
-            f"success {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | " + "  ".join(actors))
+            f"v{learner['policy_version']}  online return(100) {'-' if ret is None else f'{ret:.1f}'}  "
+            f"online success(100) {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | "
+            + "  ".join(actors))
 
 
 def stop_all(procs: dict[str, subprocess.Popen], log=print, grace_s: float = GRACE_S) -> None:
@@ -72,7 +80,7 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
     config_path.write_text(config.to_toml())
     logs = run_dir / "logs"
     logs.mkdir(exist_ok=True)
-    commands = service_commands(config_path, config.actor.num_actors, evaluator)
+    commands = service_commands(config_path, config.actor.num_actors, evaluator, config.run.seed)
     procs: dict[str, subprocess.Popen] = {}
 
     def start(name: str) -> None:

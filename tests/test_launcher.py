@@ -8,6 +8,7 @@ import sys
 import time
 
 from forcegrasp.cli import SERVICES
+from forcegrasp.launcher import progress_line
 from forcegrasp.transport import free_tcp_port
 
 
@@ -66,3 +67,14 @@ def test_up_shows_progress_and_ctrl_c_stops_every_service(tmp_path):
     assert not [pid for pid in pids if _alive(pid)]
     assert (tmp_path / "up" / "checkpoint.safetensors").is_file()  # the learner checkpointed on SIGINT
     assert (tmp_path / "up" / "logs" / "learner.log").is_file()
+
+
+def test_progress_line_labels_the_online_and_the_evaluated_success():
+    line = progress_line({
+        "learner": {"ingested": 1000, "updates": 250, "updates_per_s": 60.0, "policy_version": 3, "return_mean": 500.0,
+                    "success_rate": 0.94, "rejected": 0},
+        "evaluator": {"evaluations": 7, "latest_success_rate": 0.5, "latest_episodes": 10, "latest_step": 900,
+                      "best_success_rate": 0.88, "best_episodes": 100, "best_step": 600},
+    })
+    assert "online success(100) 94%" in line
+    assert "latest 50% of 10 (step 900)" in line and "best 88% of 100 (step 600)" in line
