@@ -56,6 +56,17 @@ OBS_LAYOUT = (
     ("goal_palm", 3),
 )
 ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
+# Simulator state the deployed policy never observes, for an asymmetric critic (learner only):
+# where the object is (its jitter), where the palm is relative to its goal on the object, how far
+# the object has been pushed, and which fingertips (ff mf rf lf th) and whether any part of the
+# hand touch it.
+PRIVILEGED_LAYOUT = (
+    ("object_offset", 2),
+    ("palm_error", 3),
+    ("object_displacement", 3),
+    ("fingertip_contacts", 5),
+    ("hand_contact", 1),
+)
 # A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
 # than this, in m); near some edges of the ±2 cm square it would. Random resets redraw such offsets.
 OVERLAP_TOLERANCE = 1e-4
@@ -71,6 +82,16 @@ def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, wh
             return offset
     raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
                        "in a row; relabel the pre-grasp")
+
+
+#: Largest change per step of the base translation targets (m), rotation targets (rad) and h.
+ACTION_STEPS = (0.004, 0.02, 0.025)
+
+
+def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
+                 max_h_step: float = ACTION_STEPS[2]) -> np.ndarray:
+    """What action +1 means in env units, per component: the policy file's ``action_high``."""
+    return np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
 
 
 def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
@@ -156,9 +177,9 @@ class FunctionalGraspEnv(gym.Env):
         abort_return: float = -50.0,
         success_tolerances: tuple[float, float, float] = (0.01, 0.05, 0.01),
         reward_weights: RewardWeights = RewardWeights(),
-        max_translation_step: float = 0.004,
-        max_rotation_step: float = 0.02,
-        max_h_step: float = 0.025,
+        max_translation_step: float = ACTION_STEPS[0],
+        max_rotation_step: float = ACTION_STEPS[1],
+        max_h_step: float = ACTION_STEPS[2],
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
@@ -184,7 +205,7 @@ class FunctionalGraspEnv(gym.Env):
         self.ix = SceneIndex.of(self.model)
         self.slides = slide_axes(self.model)
         self._rest_z = resting_height(self.model)
-        self._action_scale = np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
+        self._action_scale = action_scale(max_translation_step, max_rotation_step, max_h_step)
         self._base_lo, self._base_hi = self.ix.all_range[:6, 0], self.ix.all_range[:6, 1]
         self._hand_span = self.ix.hand_range[:, 1] - self.ix.hand_range[:, 0]
         self._J0, self._Jg = self.label.pregrasp.hand, self.label.goal.hand
@@ -205,6 +226,7 @@ class FunctionalGraspEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self._renderer = None
         self._probe = None  # scratch MjData for `overlap`
+        self._fingertips = [self.ix.fingertip_geoms[f] for f in ("ff", "mf", "rf", "lf", "th")]
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -309,6 +331,25 @@ class FunctionalGraspEnv(gym.Env):
                 torques = torques + self.np_random.normal(0.0, self.torque_noise_std, 24)
             parts.insert(0, torques)
         return np.concatenate(parts, dtype=np.float32)
+
+    def privileged_state(self) -> np.ndarray:
+        """`PRIVILEGED_LAYOUT` for the current state (14 float32): what an asymmetric critic may
+        see in simulation; never part of the observation."""
+        d, ix = self.data, self.ix
+        out = np.zeros(14, np.float32)
+        out[0:2] = self.offset
+        out[2:5] = self._palm_pos - self._object_pos - self.label.goal_palm
+        out[5:8] = self._object_pos - self.object_start
+        n = d.ncon
+        if n:
+            g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
+            on_object = np.isin(g1, ix.object_geoms) | np.isin(g2, ix.object_geoms)
+            if on_object.any():
+                other = np.where(np.isin(g1, ix.object_geoms), g2, g1)[on_object]
+                for k, geom in enumerate(self._fingertips):
+                    out[8 + k] = float((other == geom).any())
+                out[13] = float(np.isin(other, ix.hand_geoms).any())
+        return out
 
     def goal_base_for_offset(self, offset) -> np.ndarray:
         """Goal base joint values for an object displaced by (dx, dy): what an oracle would aim at."""

@@ -11,7 +11,7 @@ import threading
 import zenoh
 
 from forcegrasp.config import Config
-from forcegrasp.env import ACTION_LAYOUT, FunctionalGraspEnv, observation_layout
+from forcegrasp.env import ACTION_LAYOUT, FunctionalGraspEnv, action_scale, observation_layout
 from forcegrasp.policy_file import PolicyMetadata, actor_param_shapes
 from forcegrasp.transport import open_session
 
@@ -53,7 +53,8 @@ def make_env(config: Config, **overrides) -> FunctionalGraspEnv:
     return FunctionalGraspEnv(e.object, **kwargs)
 
 
-def policy_metadata(config: Config, hidden, training_steps: int = 0, score: float | None = None, **extra) -> PolicyMetadata:
+def policy_metadata(config: Config, hidden, training_steps: int = 0, score: float | None = None,
+                    obs_norm: bool = False, **extra) -> PolicyMetadata:
     """What a policy trained under ``config`` looks like: the contract between learner and actors."""
     return PolicyMetadata(
         obs_layout=list(observation_layout(config.env.force_feedback)),
@@ -63,6 +64,9 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
         force_feedback=config.env.force_feedback,
         training_steps=training_steps,
         eval_score=score,
+        obs_norm=obs_norm,
+        action_low=[-float(x) for x in action_scale()],
+        action_high=[float(x) for x in action_scale()],
         extra={"run": config.run.name, **extra},
     )
 
