@@ -64,6 +64,9 @@ def configure_threads(num_threads: int | None = None) -> int:
     return torch.get_num_threads()
 
 
+OBS_CLIP = 10.0  # normalised observations are clipped to +-this (a value never seen in training)
+
+
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy: an MLP gives the mean and log-std of u, and a = tanh(u).
 
@@ -71,16 +74,27 @@ class Actor(nn.Module):
     (mean, then log-std). `forcegrasp.policy_file.actor_param_shapes` relies on this naming.
     """
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), log_std_bounds=(-20.0, 2.0)):
+    def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), log_std_bounds=(-20.0, 2.0),
+                 obs_norm: bool = False):
         super().__init__()
         dims = [obs_dim, *hidden, 2 * act_dim]
         self.layers = nn.ModuleList(nn.Linear(i, o) for i, o in zip(dims[:-1], dims[1:]))
         self.obs_dim, self.act_dim, self.hidden = obs_dim, act_dim, tuple(hidden)
         self.log_std_min, self.log_std_max = (float(b) for b in log_std_bounds)
+        self.obs_norm = bool(obs_norm)
+        if self.obs_norm:  # part of the state dict, so of every policy file and weights message
+            self.register_buffer("obs_mean", torch.zeros(obs_dim))
+            self.register_buffer("obs_std", torch.ones(obs_dim))
+
+    def normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        """(obs - mean) / std clipped to +-OBS_CLIP with the frozen statistics; identity without."""
+        if not self.obs_norm:
+            return obs
+        return ((obs - self.obs_mean) / self.obs_std).clamp(-OBS_CLIP, OBS_CLIP)
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean and (clamped) log-std of the pre-squash Gaussian."""
-        x = obs
+        x = self.normalize(obs)
         for layer in self.layers[:-1]:
             x = F.relu(layer(x), inplace=True)  # in place on the fresh matmul output: less memory traffic
         mean, log_std = self.layers[-1](x).chunk(2, dim=-1)
@@ -128,6 +142,9 @@ class Policy:
             self._numpy_layers = [
                 (layer.weight.detach().numpy().T.copy(), layer.bias.detach().numpy().copy()) for layer in self.actor.layers
             ]
+            self._numpy_norm = None
+            if self.actor.obs_norm:
+                self._numpy_norm = (self.actor.obs_mean.numpy().copy(), 1.0 / self.actor.obs_std.numpy())
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -142,7 +159,9 @@ class Policy:
         for name, shape in expected.items():
             if tuple(np.shape(weights[name])) != shape:
                 raise PolicyFileError(f"weight {name!r} has shape {tuple(np.shape(weights[name]))}, expected {shape}")
-        actor = Actor(metadata.obs_dim, metadata.act_dim, metadata.hidden, metadata.log_std_bounds)
+        if metadata.obs_norm and not np.all(np.asarray(weights["obs_std"]) > 0):
+            raise PolicyFileError("obs_std must be positive everywhere")
+        actor = Actor(metadata.obs_dim, metadata.act_dim, metadata.hidden, metadata.log_std_bounds, metadata.obs_norm)
         actor.load_state_dict({k: torch.tensor(np.asarray(v, dtype=np.float32)) for k, v in weights.items()})
         return cls(actor, metadata, device=device, seed=seed)
 
@@ -203,6 +222,9 @@ class Policy:
     def _numpy_action(self, x: np.ndarray, deterministic: bool) -> np.ndarray:
         """`Actor.deterministic` / `Actor.sample`'s action, in numpy (no log-probability needed)."""
         *hidden, (w_out, b_out) = self._numpy_layers
+        if self._numpy_norm is not None:
+            mean, inv_std = self._numpy_norm
+            x = np.clip((x - mean) * inv_std, -OBS_CLIP, OBS_CLIP)
         for w, b in hidden:
             x = np.maximum(x @ w + b, 0.0)
         out = x @ w_out + b_out

@@ -81,6 +81,7 @@ class PolicyMetadata:
     action_low: list[float] | None = None  # env units that action -1 maps to (None: unscaled)
     action_high: list[float] | None = None  # env units that action +1 maps to
     log_std_bounds: tuple[float, float] = (-20.0, 2.0)
+    obs_norm: bool = False  # the file carries obs_mean/obs_std; the actor sees (obs - mean) / std, clipped
     extra: dict = field(default_factory=dict)  # free-form JSON (e.g. run id, seed)
     format_version: int = FORMAT_VERSION
 
@@ -152,6 +153,8 @@ def actor_param_shapes(meta: PolicyMetadata) -> dict[str, tuple[int, ...]]:
     for i, (d_in, d_out) in enumerate(zip(dims[:-1], dims[1:])):
         shapes[f"layers.{i}.weight"] = (d_out, d_in)
         shapes[f"layers.{i}.bias"] = (d_out,)
+    if meta.obs_norm:
+        shapes["obs_mean"] = shapes["obs_std"] = (meta.obs_dim,)
     return shapes
 
 
@@ -228,3 +231,5 @@ def _check_weights(weights: dict[str, np.ndarray], meta: PolicyMetadata, source:
             )
         if not np.all(np.isfinite(w)):
             raise PolicyFileError(f"{source}: tensor {name!r} contains NaN or inf")
+    if meta.obs_norm and not np.all(weights["obs_std"] > 0):
+        raise PolicyFileError(f"{source}: obs_std must be positive everywhere")

@@ -426,6 +426,9 @@ class TransitionBatch:
     episode_successes: np.ndarray | None = None  # bool[k]
     time: float = field(default_factory=time.time)  # sender wall clock, seconds
     epoch: int = 0  # random per actor process start: tells a restart from a resent batch
+    horizon: np.ndarray | None = None          # i32[n] n-step horizon h in [1, MAX_HORIZON]; absent: 1
+    privileged: np.ndarray | None = None       # f32[n, p] simulator state for an asymmetric critic
+    next_privileged: np.ndarray | None = None  # f32[n, p] the same at next_obs
 
     @property
     def n(self) -> int:
@@ -444,9 +447,10 @@ def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) 
     """
     wire = _to_wire_dtypes(batch)
     _check_batch_shapes(wire, None, None, limits)
-    for name in ("obs", "action", "reward", "next_obs", "episode_returns"):
+    for name in ("obs", "action", "reward", "next_obs", "episode_returns", "privileged", "next_privileged"):
         if getattr(wire, name) is not None:
             _check_values(getattr(wire, name), name)
+    _check_extras(wire)
     for name in ("seq", "policy_version", "epoch"):
         if not _is_int(getattr(wire, name)) or not 0 <= getattr(wire, name) <= _INT64_MAX:
             raise ProtocolError(R_FIELD, f"{name} must be an integer in [0, 2^63)")
@@ -454,6 +458,9 @@ def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) 
            "policy_version": wire.policy_version, "time": wire.time, "epoch": wire.epoch}
     for name in ("obs", "action", "reward", "next_obs", "terminated", "truncated"):
         msg[name] = encode_array(getattr(wire, name))
+    for name in ("horizon", "privileged", "next_privileged"):
+        if getattr(wire, name) is not None:
+            msg[name] = encode_array(getattr(wire, name))
     if wire.has_episodes:
         msg["ep_return"] = encode_array(wire.episode_returns)
         msg["ep_length"] = encode_array(wire.episode_lengths)
@@ -480,12 +487,15 @@ def _to_wire_dtypes(b: TransitionBatch) -> TransitionBatch:
         terminated=cast(b.terminated, np.bool_), truncated=cast(b.truncated, np.bool_),
         episode_returns=cast(b.episode_returns, np.float32), episode_lengths=cast(b.episode_lengths, np.int32),
         episode_successes=cast(b.episode_successes, np.bool_), epoch=int(b.epoch),
+        horizon=cast(b.horizon, np.int32), privileged=cast(b.privileged, np.float32),
+        next_privileged=cast(b.next_privileged, np.float32),
     )
 
 
 def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int | None = None,
-                       limits: Limits = DEFAULT_LIMITS) -> TransitionBatch:
-    """Checked TransitionBatch; ``obs_dim``/``act_dim`` are what the receiver's env expects."""
+                       priv_dim: int | None = None, limits: Limits = DEFAULT_LIMITS) -> TransitionBatch:
+    """Checked TransitionBatch; ``obs_dim``/``act_dim`` are what the receiver's env expects and
+    ``priv_dim`` the privileged-state width its critic expects (0: none may come; None: any)."""
     r = _Reader(_unpack(payload, limits), T_TRANSITIONS, limits)
     batch = TransitionBatch(
         actor_id=r.name("actor"), seq=r.integer("seq"), policy_version=r.integer("policy_version"),
@@ -496,10 +506,42 @@ def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int
         episode_returns=r.array("ep_return", FLOAT32, None),
         episode_lengths=r.array("ep_length", frozenset({"<i4"}), None),
         episode_successes=_as_bool(r.array("ep_success", FLAGS, None)),
+        horizon=r.array("horizon", frozenset({"<i4"}), None),
+        privileged=r.array("privileged", FLOAT32, None), next_privileged=r.array("next_privileged", FLOAT32, None),
     )
     r.finish()
     _check_batch_shapes(batch, obs_dim, act_dim, limits)
+    _check_extras(batch, priv_dim)
     return batch
+
+
+#: Longest n-step horizon a transition may declare; bound on privileged-state magnitudes (metres,
+#: radians, 0/1 flags: the MDP cannot produce larger values).
+MAX_HORIZON = 64
+MAX_PRIVILEGED_ABS = 10.0
+
+
+def _check_extras(b: TransitionBatch, priv_dim: int | None = None) -> None:
+    """n-step horizons and privileged critic state: optional fields, checked like the rest."""
+    n = b.n
+    if b.horizon is not None:
+        if b.horizon.shape != (n,):
+            raise ProtocolError(R_SHAPE, f"horizon has shape {list(b.horizon.shape)}, expected [{n}]")
+        if n and (b.horizon.min() < 1 or b.horizon.max() > MAX_HORIZON):
+            raise ProtocolError(R_FIELD, f"horizon values must lie in [1, {MAX_HORIZON}]")
+    pair = (b.privileged, b.next_privileged)
+    if (pair[0] is None) != (pair[1] is None):
+        raise ProtocolError(R_MISSING, "privileged and next_privileged go together")
+    if pair[0] is None:
+        if priv_dim:
+            raise ProtocolError(R_MISSING, f"this learner's critic needs {priv_dim} privileged values per transition")
+        return
+    want = pair[0].shape[-1] if priv_dim is None and pair[0].ndim == 2 else priv_dim
+    for name, arr in zip(("privileged", "next_privileged"), pair):
+        if arr.shape != (n, want):
+            raise ProtocolError(R_SHAPE, f"{name} has shape {list(arr.shape)}, expected {[n, want]}")
+        if arr.size and np.abs(arr).max() > MAX_PRIVILEGED_ABS:
+            raise ProtocolError(R_FIELD, f"{name}: values beyond +-{MAX_PRIVILEGED_ABS}")
 
 
 def _as_bool(a: np.ndarray | None) -> np.ndarray | None:

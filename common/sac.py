@@ -64,6 +64,10 @@ class SACConfig:
     critic_lr: float = 3e-4
     alpha_lr: float = 3e-4
     gamma: float = 0.99  # discount
+    reward_scale: float = 1.0  # rewards are multiplied by this in the critic targets (Q-value scale)
+    n_step: int = 1  # n-step returns, built by the actors (forcegrasp.nstep); bootstrap with gamma^h
+    privileged_critic: bool = False  # asymmetric critic: also sees simulator state the actor never does
+    obs_norm: bool = False  # running mean/std of observations, frozen into every policy file
     tau: float = 0.005  # Polyak rate of the target critics
     target_update_interval: int = 1  # updates between target-critic updates
     # Entropy temperature.
@@ -152,20 +156,21 @@ class SAC:
     It does not own the replay buffer or the environment; callers pass minibatches to `update`.
     """
 
-    def __init__(self, obs_dim: int, act_dim: int, config: SACConfig | None = None):
+    def __init__(self, obs_dim: int, act_dim: int, config: SACConfig | None = None, priv_dim: int = 0):
         cfg = self.config = config or SACConfig()
-        self.obs_dim, self.act_dim = int(obs_dim), int(act_dim)
+        self.obs_dim, self.act_dim, self.priv_dim = int(obs_dim), int(act_dim), int(priv_dim)
+        critic_in = self.obs_dim + self.priv_dim  # an asymmetric critic sees [obs, privileged]
         self.device = select_device(cfg.device)
         if self.device.type == "cpu":
             configure_threads(cfg.num_threads)
 
         with torch.random.fork_rng(devices=[]):  # seeded init without touching the global RNG
             torch.manual_seed(cfg.seed)
-            actor = Actor(obs_dim, act_dim, cfg.hidden, cfg.log_std_bounds)
-            critic = TwinQ(obs_dim, act_dim, cfg.hidden)
+            actor = Actor(obs_dim, act_dim, cfg.hidden, cfg.log_std_bounds, obs_norm=cfg.obs_norm)
+            critic = TwinQ(critic_in, act_dim, cfg.hidden)
         self.actor = actor.to(self.device)
         self.critic = critic.to(self.device)
-        self.critic_target = TwinQ(obs_dim, act_dim, cfg.hidden).to(self.device).requires_grad_(False)
+        self.critic_target = TwinQ(critic_in, act_dim, cfg.hidden).to(self.device).requires_grad_(False)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), device=self.device, requires_grad=cfg.autotune_alpha)
         self.target_entropy = -float(act_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
@@ -190,26 +195,46 @@ class SAC:
             parallel = self.device.type == "cpu" and usable_cores() >= 2
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="sac-actor-grads") if parallel else None
         self.num_updates = 0
+        self.obs_rms = RunningMeanStd(obs_dim) if cfg.obs_norm else None
+
+    def observe(self, obs: np.ndarray) -> None:
+        """Fold new observations into the running statistics the actor (and critic) normalise with."""
+        if self.obs_rms is None:
+            return
+        self.obs_rms.update(np.asarray(obs, dtype=np.float64).reshape(-1, self.obs_dim))
+        with torch.no_grad():
+            self.actor.obs_mean.copy_(torch.as_tensor(self.obs_rms.mean, dtype=torch.float32))
+            self.actor.obs_std.copy_(torch.as_tensor(self.obs_rms.std(), dtype=torch.float32))
 
     @property
     def alpha(self) -> float:
         return float(self.log_alpha.detach().exp())
 
     # -- the gradient step ----------------------------------------------------------------------
-    def critic_terms(self, obs, action, reward, next_obs, terminated, alpha) -> CriticTerms:
-        """Critic objective on one minibatch of tensors; `alpha` is the (detached) temperature."""
+    def critic_terms(self, obs, action, reward, next_obs, terminated, alpha, discount=None, critic_obs=None,
+                     next_critic_obs=None) -> CriticTerms:
+        """Critic objective on one minibatch of tensors; `alpha` is the (detached) temperature.
+
+        ``discount`` is gamma^h per transition (n-step returns; default gamma); ``critic_obs`` and
+        ``next_critic_obs`` are what the critic sees when it differs from the actor's observation
+        (an asymmetric critic: [obs, privileged]).
+        """
+        critic_obs = obs if critic_obs is None else critic_obs
+        next_critic_obs = next_obs if next_critic_obs is None else next_critic_obs
+        discount = self.config.gamma if discount is None else discount
         # Soft Bellman target with the smaller target Q (clipped double-Q) and a fresh action:
-        # y = r + gamma (1 - done) (min_i Q'_i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s').
+        # y = c r + gamma^h (1 - done) (min_i Q'_i(s', a') - alpha log pi(a'|s')),  a' ~ pi(.|s').
         with torch.no_grad():
             next_action, next_log_prob = self.actor.sample(next_obs, self.target_generator)
-            next_q = self.critic_target(next_obs, next_action).amin(0)
-            target = reward + self.config.gamma * (1.0 - terminated) * (next_q - alpha * next_log_prob)
+            next_q = self.critic_target(next_critic_obs, next_action).amin(0)
+            target = self.config.reward_scale * reward + discount * (1.0 - terminated) * (
+                next_q - alpha * next_log_prob)
         # J_Q = 0.5 E[(Q_i(s, a) - y)^2], summed over both critics.
-        q = self.critic(obs, action)  # (2, B)
+        q = self.critic(critic_obs, action)  # (2, B)
         loss = 0.5 * (q - target).square().mean(1).sum()
         return CriticTerms(loss, q.detach(), target)
 
-    def actor_terms(self, obs, alpha) -> ActorTerms:
+    def actor_terms(self, obs, alpha, critic_obs=None) -> ActorTerms:
         """Actor and temperature objectives on one minibatch of observations."""
         # J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], a = tanh(mean + std eps) reparameterised.
         # The critics are frozen (detached weights): they pass dQ/da to the actor and take no
@@ -217,7 +242,7 @@ class SAC:
         # their first layer are back-propagated.
         new_action, log_prob = self.actor.sample(obs, self.policy_generator)
         with torch.no_grad():
-            embedding = self.critic.embed(obs)
+            embedding = self.critic.embed(obs if critic_obs is None else critic_obs)
         q_new = self.critic.head(embedding, new_action, frozen=True).amin(0)
         actor_loss = (alpha * log_prob - q_new).mean()
         # J(alpha) = E[-alpha (log pi(a|s) + target_entropy)]: raises alpha while the policy's
@@ -235,19 +260,29 @@ class SAC:
         `batch` is a `forcegrasp.replay.Batch` (or a dict with its fields) of arrays or tensors.
         Returns float metrics; ``metrics=False`` skips their (single) device-to-host copy.
         """
-        obs, action, reward, next_obs, terminated = self._tensors(batch)
+        obs, action, reward, next_obs, terminated, horizon, priv, next_priv = self._tensors(batch)
+        discount = None if horizon is None else self.config.gamma ** horizon
+        critic_obs = next_critic_obs = None
+        if self.obs_rms is not None:  # the critic sees what the actor's first layer sees
+            critic_obs, next_critic_obs = self.actor.normalize(obs), self.actor.normalize(next_obs)
+        if self.priv_dim:
+            if priv is None or next_priv is None:
+                raise ValueError(f"this learner's critic needs {self.priv_dim} privileged values per transition")
+            critic_obs = torch.cat([obs if critic_obs is None else critic_obs, priv], 1)
+            next_critic_obs = torch.cat([next_obs if next_critic_obs is None else next_critic_obs, next_priv], 1)
         alpha = self.log_alpha.detach().exp()
         threads = torch.get_num_threads()
 
         def critic_grads() -> CriticTerms:
-            terms = self.critic_terms(obs, action, reward, next_obs, terminated, alpha)
+            terms = self.critic_terms(obs, action, reward, next_obs, terminated, alpha, discount, critic_obs,
+                                      next_critic_obs)
             terms.loss.backward()
             return terms
 
         def actor_grads() -> ActorTerms:
             if torch.get_num_threads() != threads:  # a worker thread keeps the count it started with
                 torch.set_num_threads(threads)
-            terms = self.actor_terms(obs, alpha)
+            terms = self.actor_terms(obs, alpha, critic_obs)
             (terms.actor_loss + terms.alpha_loss).backward()
             return terms
 
@@ -282,8 +317,9 @@ class SAC:
         if isinstance(batch, dict):
             batch = Batch(**batch)
         return tuple(
+            None if getattr(batch, k) is None else
             torch.as_tensor(getattr(batch, k)).to(self.device, torch.float32, non_blocking=True)
-            for k in ("obs", "action", "reward", "next_obs", "terminated")
+            for k in ("obs", "action", "reward", "next_obs", "terminated", "horizon", "privileged", "next_privileged")
         )
 
     # -- acting ---------------------------------------------------------------------------------
@@ -301,7 +337,7 @@ class SAC:
         """A standalone copy of the current actor, ready to save or deploy."""
         if metadata is None:
             metadata = PolicyMetadata([("obs", self.obs_dim)], [("action", self.act_dim)], self.config.hidden,
-                                      training_steps=self.num_updates)
+                                      training_steps=self.num_updates, obs_norm=self.config.obs_norm)
         return Policy.from_actor(self.actor, metadata, device=device)
 
     # -- checkpoints ----------------------------------------------------------------------------
@@ -317,6 +353,8 @@ class SAC:
                  "policy_generator": self.policy_generator.get_state()}
         for prefix, module in self._modules():
             state.update({f"{prefix}.{k}": v for k, v in module.state_dict().items()})
+        if self.obs_rms is not None:
+            state.update({f"obs_rms.{k}": torch.as_tensor(v) for k, v in self.obs_rms.state().items()})
         saved = self.optimizer.state_dict()["state"]
         for idx, p in enumerate(p for g in self.optimizer.param_groups for p in g["params"]):
             slots = saved.get(idx) or {"step": torch.zeros((), dtype=torch.float32), "exp_avg": torch.zeros_like(p),
@@ -336,6 +374,8 @@ class SAC:
         with torch.no_grad():
             self.log_alpha.copy_(state["log_alpha"])
         self.num_updates = int(state["num_updates"])
+        if self.obs_rms is not None:
+            self.obs_rms.load({k: state[f"obs_rms.{k}"].numpy() for k in ("count", "mean", "var")})
         for offset, name in enumerate(("target_generator", "policy_generator")):
             if tuple(state[name].shape) == expected[name]:
                 getattr(self, name).set_state(state[name].cpu())
@@ -356,7 +396,8 @@ class SAC:
     def save_checkpoint(self, path: str | os.PathLike, extra: dict | None = None) -> Path:
         """Atomic safetensors file: the tensors of `state_dict`, config and `extra` as header JSON."""
         header = {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "obs_dim": self.obs_dim,
-                  "act_dim": self.act_dim, "config": asdict(self.config), "extra": extra or {}}
+                  "act_dim": self.act_dim, "priv_dim": self.priv_dim, "config": asdict(self.config),
+                  "extra": extra or {}}
         data = safetensors.torch.save({k: v.cpu() for k, v in self.state_dict().items()},
                                       metadata={"forcegrasp.sac": json.dumps(header)})
         with atomic_write(path) as f:
@@ -378,9 +419,40 @@ class SAC:
         config = SACConfig(**{k: v for k, v in header["config"].items() if k in known})
         if device is not None:
             config.device = device
-        sac = cls(header["obs_dim"], header["act_dim"], config)
+        sac = cls(header["obs_dim"], header["act_dim"], config, priv_dim=int(header.get("priv_dim", 0)))
         sac.load_state_dict(state)
         return sac, header["extra"]
+
+
+class RunningMeanStd:
+    """Mean and variance of every observation dimension over all data seen (Chan et al.'s
+    parallel update, float64). ``std`` has a floor so constant inputs stay finite."""
+
+    STD_FLOOR = 1e-3
+
+    def __init__(self, dim: int):
+        self.count, self.mean, self.var = 0.0, np.zeros(dim), np.ones(dim)
+
+    def update(self, x: np.ndarray) -> None:
+        n = x.shape[0]
+        if n == 0:
+            return
+        mean, var = x.mean(0), x.var(0)
+        total = self.count + n
+        delta = mean - self.mean
+        m2 = self.var * self.count + var * n + delta**2 * self.count * n / total
+        self.mean = self.mean + delta * n / total
+        self.var, self.count = m2 / total, total
+
+    def std(self) -> np.ndarray:
+        return np.maximum(np.sqrt(self.var), self.STD_FLOOR)
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"count": np.array(self.count), "mean": self.mean.copy(), "var": self.var.copy()}
+
+    def load(self, state: dict) -> None:
+        self.count, self.mean, self.var = float(state["count"]), np.array(state["mean"], np.float64), np.array(
+            state["var"], np.float64)
 
 
 def _fused_adam_ok(device: torch.device) -> bool:

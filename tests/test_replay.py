@@ -94,7 +94,7 @@ def test_snapshot_has_no_pickled_objects(tmp_path):
     buf.add_batch(*rows(0, 2))
     path = buf.save(tmp_path / "r.npz")
     with np.load(path, allow_pickle=False) as z:  # would raise on any object array
-        assert set(z.files) == {"obs", "action", "reward", "next_obs", "terminated", "header"}
+        assert set(z.files) == {"obs", "action", "reward", "next_obs", "terminated", "horizon", "header"}
         assert all(z[k].dtype != object for k in z.files)
 
 

@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from forcegrasp.config import Config, add_config_arguments, config_from_args
+from forcegrasp.nstep import NStepAccumulator
 from forcegrasp.policy import Policy, configure_threads
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata
 from forcegrasp.protocol import (
@@ -63,6 +64,12 @@ class ActorService:
         self.rng = np.random.default_rng(base_seed)
         self.obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
         self.obs_dim, self.act_dim = self.obs.shape[1], 7
+        from forcegrasp.services.learner.learner import sac_config
+
+        sac = sac_config(config)  # the learner's n-step horizon, discount and critic inputs
+        self.privileged = bool(sac.privileged_critic)
+        self.priv = np.stack([env.privileged_state() for env in self.envs]) if self.privileged else None
+        self.nstep = [NStepAccumulator(sac.n_step, sac.gamma) for _ in self.envs]
         self.policy: Policy | None = None
         self.policy_version = 0
         self.steps = 0
@@ -135,11 +142,16 @@ class ActorService:
     # ------------------------------------------------------------------ stepping
     def step_all(self) -> None:
         """One step of every env; finished episodes reset at once (the transition keeps the true
-        last observation, with ``terminated`` marking real terminal states)."""
+        last observation, with ``terminated`` marking real terminal states). Transitions leave
+        through each env's n-step accumulator (one-step ones when ``n_step`` is 1)."""
         actions = self.act()
         for i, env in enumerate(self.envs):
             next_obs, reward, terminated, truncated, info = env.step(actions[i])
-            self._pending.append((self.obs[i].copy(), actions[i], reward, next_obs, terminated, truncated))
+            next_priv = env.privileged_state() if self.privileged else None
+            priv = self.priv[i].copy() if self.privileged else None
+            for t in self.nstep[i].push(self.obs[i].copy(), actions[i], reward, next_obs, terminated, truncated,
+                                        priv, next_priv):
+                self._pending.append(t)
             self._returns[i] += reward
             self._lengths[i] += 1
             if terminated or truncated:
@@ -148,13 +160,25 @@ class ActorService:
                 self.successes += bool(info["success"])
                 self._returns[i], self._lengths[i] = 0.0, 0
                 next_obs, _ = env.reset()
+                if self.privileged:
+                    next_priv = env.privileged_state()
             self.obs[i] = next_obs
+            if self.privileged:
+                self.priv[i] = next_priv
         self.steps += len(self.envs)
         if len(self._pending) >= self.config.actor.publish_batch:
             self._package()
 
     def _package(self) -> None:
-        obs, action, reward, next_obs, term, trunc = (np.array(x) for x in zip(*self._pending))
+        p = self._pending
+        obs, action, next_obs = np.array([t.obs for t in p]), np.array([t.action for t in p]), np.array([t.next_obs for t in p])
+        reward, term, trunc = np.array([t.reward for t in p]), np.array([t.terminated for t in p]), np.array([t.truncated for t in p])
+        extras = {}
+        if any(t.horizon != 1 for t in p):
+            extras["horizon"] = np.array([t.horizon for t in p], np.int32)
+        if self.privileged:
+            extras["privileged"] = np.array([t.extra for t in p], np.float32)
+            extras["next_privileged"] = np.array([t.next_extra for t in p], np.float32)
         episodes = {}
         if self._ended:
             r, n, s = zip(*self._ended)
@@ -175,6 +199,7 @@ class ActorService:
             terminated=term,
             truncated=trunc,
             **episodes,
+            **extras,
         )
         try:
             payload = encode_transitions(batch)

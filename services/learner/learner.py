@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from forcegrasp.config import Config, ConfigError, add_config_arguments, config_from_args
-from forcegrasp.env import ACTION_LAYOUT, observation_layout
+from forcegrasp.env import ACTION_LAYOUT, PRIVILEGED_LAYOUT, observation_layout
 from forcegrasp.policy import weights_of
 from forcegrasp.protocol import (
     Checkpoint,
@@ -92,6 +92,7 @@ class LearnerService:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.sac_cfg = sac_config(config)
         self.obs_dim = sum(n for _, n in observation_layout(config.env.force_feedback))
+        self.priv_dim = sum(n for _, n in PRIVILEGED_LAYOUT) if self.sac_cfg.privileged_critic else 0
         self.limits = Limits(max_payload_bytes=config.learner.max_payload_mb * 2**20)
         self.rejects = RejectCounter()
         self.actors: dict[str, ActorTrack] = collections.defaultdict(ActorTrack)
@@ -119,14 +120,14 @@ class LearnerService:
             log.info("resumed from %s: %d transitions ingested, %d updates, %d in replay",
                      ckpt, self.ingested, self.sac.num_updates, len(self.buffer))
         else:
-            self.sac = SAC(self.obs_dim, ACT_DIM, self.sac_cfg)
-            self.buffer = ReplayBuffer(self.obs_dim, ACT_DIM, self.sac_cfg.buffer_size)
+            self.sac = SAC(self.obs_dim, ACT_DIM, self.sac_cfg, priv_dim=self.priv_dim)
+            self.buffer = ReplayBuffer(self.obs_dim, ACT_DIM, self.sac_cfg.buffer_size, priv_dim=self.priv_dim)
             (self.dir / "config.toml").write_text(self.config.to_toml())
         self.rng = np.random.default_rng(self.sac_cfg.seed + self.ingested)
 
     def metadata(self, score=None):
         return policy_metadata(self.config, self.sac_cfg.hidden, training_steps=self.ingested, score=score,
-                               policy_version=self.policy_version)
+                               obs_norm=self.sac_cfg.obs_norm, policy_version=self.policy_version)
 
     def make_weights(self) -> bytes:
         """Encode the current actor as the next policy version (cached for weights/latest)."""
@@ -159,7 +160,8 @@ class LearnerService:
     def ingest(self, key: str, payload: bytes) -> int:
         """Validate one TransitionBatch and add it to replay; returns transitions added (0 if dropped)."""
         try:
-            batch = decode_transitions(payload, obs_dim=self.obs_dim, act_dim=ACT_DIM, limits=self.limits)
+            batch = decode_transitions(payload, obs_dim=self.obs_dim, act_dim=ACT_DIM, priv_dim=self.priv_dim,
+                                       limits=self.limits)
             sender = self.keys.actor_of(key)
             if batch.actor_id != sender:
                 raise ProtocolError("bad_field", f"batch says actor {batch.actor_id!r} but came on {key!r}")
@@ -181,7 +183,9 @@ class LearnerService:
         track.batches += 1
         track.ingested += batch.n
         track.staleness_sum += self.policy_version - batch.policy_version
-        self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated)
+        self.sac.observe(batch.obs)
+        self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
+                              batch.horizon, batch.privileged, batch.next_privileged)
         if batch.has_episodes:
             for r, n, s in zip(batch.episode_returns, batch.episode_lengths, batch.episode_successes):
                 self.recent_episodes.append((float(r), int(n), bool(s)))

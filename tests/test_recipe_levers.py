@@ -1,0 +1,174 @@
+"""The recipe's levers at the learner core: observation normalisation frozen into policy files,
+the asymmetric critic whose policy needs no privileged input, and their checkpoints."""
+
+import numpy as np
+import pytest
+import torch
+
+from forcegrasp.env import PRIVILEGED_LAYOUT, FunctionalGraspEnv, observation_layout
+from forcegrasp.policy import Policy
+from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_file
+from forcegrasp.replay import ReplayBuffer
+from forcegrasp.sac import SAC, RunningMeanStd, SACConfig
+
+OBS, ACT, PRIV = 6, 2, 4
+
+
+def filled_buffer(priv_dim=PRIV, n=300, seed=0):
+    rng = np.random.default_rng(seed)
+    buf = ReplayBuffer(OBS, ACT, 1000, priv_dim=priv_dim)
+    obs = rng.normal(5.0, 3.0, (n, OBS))
+    extra = dict(privileged=rng.normal(size=(n, priv_dim)), next_privileged=rng.normal(size=(n, priv_dim))) if priv_dim else {}
+    buf.add_batch(obs, rng.uniform(-1, 1, (n, ACT)), rng.normal(size=n), obs + 0.1, np.zeros(n),
+                  horizon=rng.integers(1, 4, n), **extra)
+    return buf, obs
+
+
+def test_running_statistics_match_numpy_over_many_batches():
+    rng = np.random.default_rng(1)
+    data = rng.normal(3.0, [0.5, 2.0, 10.0], (1000, 3))
+    rms = RunningMeanStd(3)
+    for chunk in np.array_split(data, 17):
+        rms.update(chunk)
+    assert np.allclose(rms.mean, data.mean(0)) and np.allclose(rms.var, data.var(0))
+
+
+def test_normalisation_statistics_travel_in_the_policy_file_and_apply_identically(tmp_path):
+    sac = SAC(OBS, ACT, SACConfig(seed=0, hidden=(16, 16), obs_norm=True))
+    buf, obs = filled_buffer(priv_dim=0)
+    sac.observe(obs)
+    for _ in range(3):
+        sac.update(buf.sample(64, np.random.default_rng(0)))
+    meta = PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16), obs_norm=True)
+    path = sac.policy(meta).save(tmp_path / "p.safetensors")
+    weights, loaded_meta = load_policy_file(path)
+    assert loaded_meta.obs_norm
+    assert np.allclose(weights["obs_mean"], obs.mean(0), atol=1e-4)
+    assert np.allclose(weights["obs_std"], obs.std(0), rtol=1e-4)
+    policy = Policy.load(path)
+    with torch.no_grad():
+        want = sac.actor.deterministic(torch.as_tensor(obs[:8], dtype=torch.float32)).numpy()
+    assert np.allclose(policy(obs[:8]), want, atol=1e-5)  # numpy path applies the statistics too
+    torch_policy = Policy.load(path)
+    torch_policy._numpy_layers = None
+    assert np.allclose(torch_policy(obs[:8]), want, atol=1e-5)
+    # Without the statistics the same weights would act differently: they really are applied.
+    raw = Policy.from_weights({k: v for k, v in weights.items() if not k.startswith("obs_")},
+                              PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16)))
+    assert not np.allclose(raw(obs[:8]), want, atol=1e-3)
+    bad = dict(weights, obs_std=np.zeros(OBS, np.float32))
+    with pytest.raises(PolicyFileError, match="obs_std"):
+        Policy.from_weights(bad, loaded_meta)
+
+
+def test_asymmetric_critic_policy_is_table_one_only_and_checkpoints_round_trip(tmp_path):
+    sac = SAC(OBS, ACT, SACConfig(seed=0, hidden=(16, 16), obs_norm=True, privileged_critic=True,
+                                  n_step=3), priv_dim=PRIV)
+    buf, obs = filled_buffer()
+    sac.observe(obs)
+    batch = buf.sample(64, np.random.default_rng(0))
+    assert batch.privileged.shape == (64, PRIV) and batch.horizon.shape == (64,)
+    m = sac.update(batch)
+    assert np.isfinite(m["critic_loss"])
+    assert sac.critic.obs_weight.shape[1] == OBS + PRIV and sac.actor.layers[0].in_features == OBS
+    with pytest.raises(ValueError, match="privileged"):
+        sac.update(batch.__class__(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated))
+    sac.save_checkpoint(tmp_path / "c.safetensors")
+    back, _ = SAC.load_checkpoint(tmp_path / "c.safetensors")
+    assert back.priv_dim == PRIV and np.allclose(back.obs_rms.mean, sac.obs_rms.mean)
+    for k, v in sac.state_dict().items():
+        assert torch.equal(v, back.state_dict()[k]), k
+    policy = sac.policy(PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16), obs_norm=True))
+    assert policy(obs[0]).shape == (ACT,)  # acts on the observation alone
+
+
+def test_env_privileged_state_is_outside_the_observation():
+    env = FunctionalGraspEnv("camera")
+    obs, _ = env.reset(seed=0, options={"offset": (0.01, -0.005)})
+    priv = env.privileged_state()
+    assert priv.shape == (sum(n for _, n in PRIVILEGED_LAYOUT),) and priv.dtype == np.float32
+    assert np.allclose(priv[:2], (0.01, -0.005)) and np.allclose(priv[5:8], 0.0, atol=1e-6)
+    assert obs.shape == (sum(n for _, n in observation_layout(True)),)  # Table I, 77: unchanged
+    assert priv[8:].sum() == 0  # the pre-grasp touches nothing
+    for _ in range(60):  # close the hand on the object: contacts appear in the flags
+        obs, *_ , info = env.step(np.array([0, 0, 0, 0, 0, 0, 1.0]))
+        if info["step"] and env.privileged_state()[13]:
+            break
+    assert np.all(np.isin(env.privileged_state()[8:], (0.0, 1.0)))
+
+
+def test_service_written_policies_carry_the_env_action_scaling(tmp_path):
+    """Issue 9's defect: a policy from the learner service says what its actions mean."""
+    from forcegrasp.config import load_config
+    from forcegrasp.services.learner.learner import LearnerService
+
+    config = load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=scale", "learner.sac.hidden=[8, 8]",
+                                    "learner.sac.buffer_size=1000"])
+    service = LearnerService(config)
+    path = service.save_policy()
+    _, meta = load_policy_file(path)
+    env = FunctionalGraspEnv(config.env.object)
+    assert meta.action_high == pytest.approx(list(env._action_scale))
+    assert meta.action_low == pytest.approx(list(-env._action_scale))
+    assert np.allclose(Policy.load(path).rescale(np.ones(7)), env._action_scale)
+
+
+def _batch(n=8, priv=None, horizon=None, obs_dim=77):
+    from forcegrasp.protocol import TransitionBatch
+
+    rng = np.random.default_rng(0)
+    return TransitionBatch(actor_id="a", seq=0, policy_version=0, obs=rng.normal(size=(n, obs_dim)),
+                           action=rng.uniform(-1, 1, (n, 7)), reward=rng.normal(size=n),
+                           next_obs=rng.normal(size=(n, obs_dim)), terminated=np.zeros(n, bool),
+                           truncated=np.zeros(n, bool), horizon=horizon,
+                           privileged=priv, next_privileged=None if priv is None else priv.copy())
+
+
+def test_privileged_and_horizon_fields_are_validated_on_the_wire():
+    from forcegrasp.protocol import DEFAULT_LIMITS, ProtocolError, _pack, _unpack, decode_transitions, encode_transitions
+
+    good = _batch(priv=np.zeros((8, 14)), horizon=np.full(8, 3))
+    back = decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=14)
+    assert back.privileged.shape == (8, 14) and list(back.horizon) == [3] * 8
+    with pytest.raises(ProtocolError) as e:  # this learner has no privileged critic
+        decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=0)
+    assert e.value.reason == "shape"
+    with pytest.raises(ProtocolError) as e:  # this one needs it
+        decode_transitions(encode_transitions(_batch()), obs_dim=77, act_dim=7, priv_dim=14)
+    assert e.value.reason == "missing_field"
+
+    def tampered(**fields):
+        msg = _unpack(encode_transitions(good), DEFAULT_LIMITS)
+        msg.update(fields)
+        return _pack(msg)
+
+    from forcegrasp.protocol import encode_array
+
+    cases = {
+        "nonfinite": tampered(privileged=encode_array(np.full((8, 14), np.nan, np.float32))),
+        "bad_field": tampered(privileged=encode_array(np.full((8, 14), 1e6, np.float32))),
+        "shape": tampered(next_privileged=encode_array(np.zeros((8, 13), np.float32))),
+        "dtype": tampered(horizon=encode_array(np.full(8, 3, np.int64))),
+    }
+    for reason, payload in cases.items():
+        with pytest.raises(ProtocolError) as e:
+            decode_transitions(payload, obs_dim=77, act_dim=7, priv_dim=14)
+        assert e.value.reason == reason, reason
+    with pytest.raises(ProtocolError) as e:
+        decode_transitions(tampered(horizon=encode_array(np.full(8, 0, np.int32))), obs_dim=77, act_dim=7, priv_dim=14)
+    assert e.value.reason == "bad_field"
+
+
+def test_learner_counts_and_drops_bad_privileged_state(tmp_path):
+    from forcegrasp.config import load_config
+    from forcegrasp.protocol import Keys, encode_transitions
+    from forcegrasp.services.learner.learner import LearnerService
+
+    config = load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=asym", "learner.sac.hidden=[8, 8]",
+                                    "learner.sac.buffer_size=1000", "learner.sac.privileged_critic=true"])
+    service = LearnerService(config)
+    key = Keys("asym").transitions("a")
+    assert service.ingest(key, encode_transitions(_batch(priv=np.zeros((8, 14))))) == 8
+    assert service.ingest(key, encode_transitions(_batch())) == 0  # an actor without privileged state
+    assert len(service.buffer) == 8 and service.rejects.counts() == {"missing_field": 1}
+    assert service.buffer.sample(4, np.random.default_rng(0)).privileged.shape == (4, 14)
