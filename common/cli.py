@@ -143,6 +143,7 @@ TOOLS = {
     "best": ("forcegrasp.services.evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
     "replay": ("forcegrasp.replay_render", "render an evaluator episode log (.mcap) to an image strip or video"),
     "plot": ("forcegrasp.plot", "training curves of one or several runs as one PNG"),
+    "experiment": ("forcegrasp.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
     "eval": ("forcegrasp.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
 }
 

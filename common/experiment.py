@@ -1,0 +1,284 @@
+"""``forcegrasp experiment``: one training configuration for a wall-clock budget, scored at fixed marks.
+
+Runs the real cluster (`forcegrasp.launcher.up`: learner, actors, evaluator as processes, exactly
+what ``forcegrasp up`` runs) for ``--minutes`` of wall-clock. Every ``--mark-every`` minutes it
+freezes two policy files into ``<run>/marks/``:
+
+- ``best-MM``: the evaluator's current best (what ``forcegrasp best`` would hand a user then);
+- ``latest-MM``: the learner's newest policy snapshot.
+
+When training stops, each frozen file is tested on the same ``--episodes`` held-out placements
+(the ``"test"`` stream of seed ``--test-seed``, never used to pick a checkpoint), deterministic
+actions, on every core. The record, ``<run>/experiment.json``, holds the configuration, the marks,
+their steps and scores; ``forcegrasp experiment --plot OUT.png RUN...`` overlays several records
+(success against wall-clock minutes and against environment steps).
+
+Resumable: the same command continues an interrupted experiment: training resumes from the
+learner's checkpoint, wall-clock counts on from where it stopped, marks already taken are kept
+and only untested files are evaluated.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+RECORD = "experiment.json"
+
+
+# ---------------------------------------------------------------------------------- the record
+def load_record(run_dir: Path) -> dict | None:
+    path = Path(run_dir) / RECORD
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def save_record(run_dir: Path, record: dict) -> None:
+    path = Path(run_dir) / RECORD
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(record, indent=1))
+    os.replace(tmp, path)
+
+
+def _current_files(run_dir: Path) -> dict:
+    """The learner's latest snapshot and the evaluator's best right now, with their steps."""
+    from forcegrasp.policy_file import load_policy_file
+    from forcegrasp.services.evaluator.topk import read_run_index, top_folder
+
+    out = {}
+    latest = run_dir / "policy.safetensors"
+    if latest.is_file():
+        out["latest"] = latest
+    try:
+        index = read_run_index(run_dir)
+    except (OSError, ValueError):
+        index = None
+    if index and index.get("best"):
+        best = top_folder(run_dir) / index["best"]
+        if best.is_file():
+            out["best"] = best
+    steps = {}
+    for kind, path in out.items():
+        try:
+            steps[kind] = int(load_policy_file(path)[1].training_steps)
+        except Exception:  # a file replaced while we read it: skip this one, the next mark has it
+            steps[kind] = None
+    return {k: (v, steps[k]) for k, v in out.items()}
+
+
+def take_mark(run_dir: Path, record: dict, minute: float, elapsed_s: float) -> dict:
+    """Freeze the current best and latest policy files as this mark's."""
+    marks_dir = run_dir / "marks"
+    marks_dir.mkdir(exist_ok=True)
+    mark = {"minute": minute, "elapsed_s": round(elapsed_s, 1), "files": {}, "steps": {}, "test": {}}
+    for kind, (path, step) in _current_files(run_dir).items():
+        dst = marks_dir / f"{kind}-{minute:05.1f}.safetensors"
+        shutil.copyfile(path, dst)
+        mark["files"][kind] = dst.name
+        mark["steps"][kind] = step
+    record["marks"] = [m for m in record["marks"] if m["minute"] != minute] + [mark]
+    record["marks"].sort(key=lambda m: m["minute"])
+    save_record(run_dir, record)
+    return mark
+
+
+# ---------------------------------------------------------------------------------- testing
+def _test_chunk(args) -> list[dict]:
+    """Worker: run one policy file on some held-out placements (deterministic actions)."""
+    path, places, env_kwargs = args
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.evaluation import run_episode
+    from forcegrasp.policy import Policy
+
+    policy = Policy.load(path)
+    env = FunctionalGraspEnv(policy.metadata.object_name, force_feedback=policy.metadata.force_feedback,
+                             **env_kwargs)
+    return [{"success": r.success, "ret": r.ret, "failure": r.failure, "length": r.length}
+            for r in (run_episode(env, policy, p) for p in places)]
+
+
+def test_files(paths: list[Path], episodes: int, seed: int, env_kwargs: dict, workers: int, log=print) -> list[dict]:
+    """Success rate and mean return of each policy file on the same held-out placements."""
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.evaluation import placements
+    from forcegrasp.policy_file import load_policy_file
+
+    results = []
+    if not paths:
+        return results
+    meta = load_policy_file(paths[0])[1]
+    probe = FunctionalGraspEnv(meta.object_name, force_feedback=meta.force_feedback, **env_kwargs)
+    places = placements(seed, episodes, probe.jitter, "test", clear=probe.is_clear)
+    chunks = max(1, workers)
+    jobs = [(str(p), places[i::chunks], env_kwargs) for p in paths for i in range(chunks)]
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=max(1, workers)) as pool:
+        outs = list(pool.map(_test_chunk, jobs))
+    for k, path in enumerate(paths):
+        eps = [e for out in outs[k * chunks:(k + 1) * chunks] for e in out]
+        n = len(eps)
+        results.append({"episodes": n, "success_rate": sum(e["success"] for e in eps) / n,
+                        "mean_return": sum(e["ret"] for e in eps) / n})
+    log(f"tested {len(paths)} policy files on {episodes} held-out placements in {time.perf_counter() - t0:.0f} s")
+    return results
+
+
+def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
+    """Score every frozen file of every mark that has no score yet, then save the record."""
+    todo = [(m, kind) for m in record["marks"] for kind in m["files"] if kind not in m["test"]]
+    if not todo:
+        return
+    paths = [run_dir / "marks" / m["files"][kind] for m, kind in todo]
+    scores = test_files(paths, record["episodes"], record["test_seed"], record.get("test_env", {}), workers, log)
+    for (m, kind), s in zip(todo, scores):
+        m["test"][kind] = s
+    save_record(run_dir, record)
+
+
+def summary_lines(record: dict) -> list[str]:
+    lines = [f"{record['label']} (seed {record['seed']}): held-out success on {record['episodes']} placements"]
+    for m in record["marks"]:
+        t = m["test"]
+        cells = [f"{kind} {t[kind]['success_rate']:.0%} (step {m['steps'].get(kind)})" for kind in ("best", "latest")
+                 if kind in t]
+        lines.append(f"  {m['minute']:5.1f} min: " + ", ".join(cells))
+    return lines
+
+
+# ---------------------------------------------------------------------------------- running
+def run_experiment(config, minutes: float, mark_every: float, episodes: int, test_seed: int, label: str,
+                   evaluator: bool = True, workers: int | None = None, log=print) -> dict:
+    from forcegrasp.launcher import up
+
+    run_dir = Path(config.run.output_dir) / config.run.name
+    run_dir.mkdir(parents=True, exist_ok=True)
+    record = load_record(run_dir) or {
+        "label": label, "seed": config.run.seed, "object": config.env.object,
+        "force_feedback": config.env.force_feedback, "minutes": minutes, "mark_every": mark_every,
+        "episodes": episodes, "test_seed": test_seed, "elapsed_s": 0.0, "config": config.to_dict(), "marks": [],
+    }
+    record["minutes"] = minutes  # a resumed experiment may be given a longer budget
+    save_record(run_dir, record)
+    done_s = float(record["elapsed_s"])
+    remaining = minutes * 60.0 - done_s
+    if remaining > 1.0:
+        log(f"experiment {label}: {remaining / 60:.1f} of {minutes} min to train; marks every {mark_every} min")
+        t0 = time.monotonic()
+        stop = threading.Event()
+        taken = {m["minute"] for m in record["marks"]}
+
+        def elapsed() -> float:
+            return done_s + time.monotonic() - t0
+
+        def marker() -> None:
+            k = 1
+            while not stop.is_set():
+                minute = round(k * mark_every, 3)
+                if minute >= minutes:
+                    return  # the final mark is taken after the cluster stops
+                wait = minute * 60.0 - elapsed()
+                if minute not in taken and wait > 0 and stop.wait(wait):
+                    return
+                if minute not in taken:
+                    take_mark(run_dir, record, minute, elapsed())
+                    record["elapsed_s"] = round(elapsed(), 1)
+                    save_record(run_dir, record)
+                k += 1
+
+        thread = threading.Thread(target=marker, daemon=True, name="marks")
+        thread.start()
+        try:
+            up(config, run_dir / "cluster.toml", stop_after=remaining, log=log, evaluator=evaluator)
+        finally:
+            stop.set()
+            thread.join()
+            record["elapsed_s"] = round(elapsed(), 1)
+            save_record(run_dir, record)
+        if record["elapsed_s"] >= minutes * 60.0 - 1.0:
+            take_mark(run_dir, record, float(minutes), record["elapsed_s"])
+    test_marks(run_dir, record, workers or max(1, os.cpu_count() or 1), log)
+    for line in summary_lines(record):
+        log(line)
+    return record
+
+
+# ---------------------------------------------------------------------------------- plotting
+def plot_records(records: list[dict], out: Path) -> Path:
+    """Held-out success of the evaluator's pick (solid) and the latest snapshot (dotted) against
+    wall-clock minutes and environment steps; one colour per label, one marker per seed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = list(dict.fromkeys(r["label"] for r in records))
+    colours = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
+    markers = "osD^vP*X"
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
+    for r in records:
+        seeds = sorted({x["seed"] for x in records if x["label"] == r["label"]})
+        style = dict(color=colours[r["label"]], marker=markers[seeds.index(r["seed"]) % len(markers)], ms=4)
+        for kind, ls, lw in (("best", "-", 1.8), ("latest", ":", 1.0)):
+            pts = [(m["minute"], m["steps"].get(kind), m["test"][kind]["success_rate"]) for m in r["marks"]
+                   if kind in m["test"]]
+            if not pts:
+                continue
+            name = f"{r['label']} s{r['seed']}" if kind == "best" else None
+            axes[0].plot([p[0] for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, label=name, **style)
+            axes[1].plot([p[1] or 0 for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, **style)
+    axes[0].set_xlabel("wall-clock minutes (2-core machine, evaluator beside training)")
+    axes[1].set_xlabel("environment steps")
+    axes[0].set_ylabel("held-out success %")
+    for ax in axes:
+        ax.set_ylim(-3, 103)
+        ax.grid(alpha=0.3)
+        ax.axhline(90, color="grey", lw=0.8, ls="--")
+    objects = sorted({r["object"] for r in records})
+    fig.suptitle(f"{', '.join(objects)}: evaluator's pick (solid) and latest snapshot (dotted) on "
+                 f"{records[0]['episodes']} held-out placements")
+    axes[0].legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def main(argv=None) -> int:
+    from forcegrasp.config import add_config_arguments, config_from_args
+
+    parser = argparse.ArgumentParser(prog="forcegrasp experiment", description=__doc__.splitlines()[0])
+    add_config_arguments(parser)
+    parser.add_argument("--minutes", type=float, default=60.0, help="wall-clock budget of the training run")
+    parser.add_argument("--mark-every", type=float, default=5.0, help="minutes between frozen policies")
+    parser.add_argument("--episodes", type=int, default=50, help="held-out placements per frozen policy")
+    parser.add_argument("--test-seed", type=int, default=0, help="seed of the held-out placement stream")
+    parser.add_argument("--label", default=None, help="name of the configuration in plots (default: run name)")
+    parser.add_argument("--no-evaluator", action="store_true", help="train without the evaluator (no 'best')")
+    parser.add_argument("--workers", type=int, default=None, help="processes for testing (default: all cores)")
+    parser.add_argument("--plot", metavar="OUT.png", default=None,
+                        help="only plot: overlay the records of the run folders given as arguments")
+    parser.add_argument("runs", nargs="*", help="with --plot: run folders (or experiment.json files)")
+    args = parser.parse_args(argv)
+    if args.plot:
+        records = []
+        for r in args.runs:
+            p = Path(r)
+            records.append(json.loads((p if p.is_file() else p / RECORD).read_text()))
+        print(f"wrote {plot_records(records, Path(args.plot))}")
+        return 0
+    config = config_from_args(args)
+    run_experiment(config, args.minutes, args.mark_every, args.episodes, args.test_seed,
+                   args.label or config.run.name, evaluator=not args.no_evaluator, workers=args.workers,
+                   log=lambda m: print(m, flush=True))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
