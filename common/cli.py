@@ -144,6 +144,7 @@ TOOLS = {
     "replay": ("forcegrasp.replay_render", "render an evaluator episode log (.mcap) to an image strip or video"),
     "plot": ("forcegrasp.plot", "training curves of one or several runs as one PNG"),
     "experiment": ("forcegrasp.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
+    "online-check": ("forcegrasp.online_check", "does a frozen policy's online success match its offline tests?"),
     "eval": ("forcegrasp.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
 }
 

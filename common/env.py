@@ -58,8 +58,8 @@ OBS_LAYOUT = (
 ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
 # Simulator state the deployed policy never observes, for an asymmetric critic (learner only):
 # where the object is (its jitter), where the palm is relative to its goal on the object, how far
-# the object has been pushed, and which fingertips (ff mf rf lf th) and whether any part of the
-# hand touch it.
+# the object has been pushed (all three in cm, so that they are of order one like the flags), and
+# which fingertips (ff mf rf lf th) and whether any part of the hand touch it.
 PRIVILEGED_LAYOUT = (
     ("object_offset", 2),
     ("palm_error", 3),
@@ -337,9 +337,9 @@ class FunctionalGraspEnv(gym.Env):
         see in simulation; never part of the observation."""
         d, ix = self.data, self.ix
         out = np.zeros(14, np.float32)
-        out[0:2] = self.offset
-        out[2:5] = self._palm_pos - self._object_pos - self.label.goal_palm
-        out[5:8] = self._object_pos - self.object_start
+        out[0:2] = 100.0 * self.offset
+        out[2:5] = 100.0 * (self._palm_pos - self._object_pos - self.label.goal_palm)
+        out[5:8] = 100.0 * (self._object_pos - self.object_start)
         n = d.ncon
         if n:
             g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]

@@ -515,10 +515,10 @@ def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int
     return batch
 
 
-#: Longest n-step horizon a transition may declare; bound on privileged-state magnitudes (metres,
-#: radians, 0/1 flags: the MDP cannot produce larger values).
+#: Longest n-step horizon a transition may declare; bound on privileged-state magnitudes (cm within
+#: the palm and object tolerances, 0/1 flags: the MDP cannot produce larger values).
 MAX_HORIZON = 64
-MAX_PRIVILEGED_ABS = 10.0
+MAX_PRIVILEGED_ABS = 100.0
 
 
 def _check_extras(b: TransitionBatch, priv_dim: int | None = None) -> None:

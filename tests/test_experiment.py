@@ -1,0 +1,41 @@
+"""`forcegrasp experiment`: a short real cluster run leaves marks, tests them, and resumes."""
+
+import json
+
+from forcegrasp.config import load_config
+from forcegrasp.experiment import RECORD, plot_records, run_experiment
+from forcegrasp.transport import free_tcp_port
+
+
+def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
+    port = free_tcp_port()
+    config = load_config(overrides=[
+        "run.name=exp", f"run.output_dir={tmp_path}", "env.object=camera", "actor.num_actors=1",
+        "actor.envs_per_actor=2", "actor.random_steps=100", f'network.learner_listen=["tcp/127.0.0.1:{port}"]',
+        "learner.sac.hidden=[16, 16]", "learner.sac.batch_size=32", "learner.sac.learning_starts=200",
+        "learner.sac.updates_per_step=0.25", "learner.sac.n_step=3", "learner.sac.obs_norm=true",
+        "learner.sac.privileged_critic=true", "evaluator.eval_every=300", "evaluator.eval_episodes=2",
+        "evaluator.final_rank_episodes=2", "evaluator.http_port=0", "learner.checkpoint_every=400",
+    ])
+    lines = []
+    record = run_experiment(config, minutes=0.75, mark_every=0.25, episodes=3, test_seed=0, label="tiny",
+                            workers=2, log=lines.append)
+    run_dir = tmp_path / "exp"
+    assert [m["minute"] for m in record["marks"]] == [0.25, 0.5, 0.75]
+    final = record["marks"][-1]
+    assert {"latest", "best"} <= set(final["files"]) and final["steps"]["latest"] > 0
+    for m in record["marks"]:
+        for kind, score in m["test"].items():
+            assert score["episodes"] == 3 and 0.0 <= score["success_rate"] <= 1.0
+            assert (run_dir / "marks" / m["files"][kind]).is_file()
+    assert any("held-out success" in line for line in lines)
+    on_disk = json.loads((run_dir / RECORD).read_text())
+    assert on_disk["elapsed_s"] >= 45 and on_disk["marks"] == record["marks"]
+    # Same command, longer budget: training resumes where it stopped and the clock counts on.
+    steps_before = final["steps"]["latest"]
+    again = run_experiment(config, minutes=1.0, mark_every=0.25, episodes=3, test_seed=0, label="tiny",
+                           workers=2, log=lines.append)
+    assert [m["minute"] for m in again["marks"]] == [0.25, 0.5, 0.75, 1.0]
+    assert again["marks"][:3] == record["marks"]  # kept, not re-tested
+    assert again["marks"][-1]["steps"]["latest"] > steps_before
+    assert plot_records([again], tmp_path / "x.png").stat().st_size > 10_000
