@@ -1,6 +1,7 @@
 """ForceGrasp: force-feedback functional grasping with distributed SAC."""
 
 import os
+import sys
 from pathlib import Path
 
 # Offscreen rendering must pick its GL backend before mujoco is first imported anywhere.
@@ -12,19 +13,9 @@ __version__ = "0.1.0"
 ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve().parent.parent / "assets")
 
 
-def _register_envs() -> None:
-    """Gymnasium ids FunctionalGrasp-<Object>-v0; kwargs pass through to FunctionalGraspEnv."""
-    from gymnasium.envs.registration import register, registry
-
-    for object_name, env_name in (
-        ("spray_bottle", "SprayBottle"),
-        ("power_drill", "PowerDrill"),
-        ("mug", "Mug"),
-        ("camera", "Camera"),
-    ):
-        env_id = f"FunctionalGrasp-{env_name}-v0"
-        if env_id not in registry:
-            register(id=env_id, entry_point="forcegrasp.env:FunctionalGraspEnv", kwargs={"object_name": object_name})
-
-
-_register_envs()
+# Gymnasium ids (FunctionalGrasp-<Object>-v0) are registered by `forcegrasp.env` when it is
+# imported, and here when gymnasium already is: `import gymnasium; import forcegrasp` then
+# `gymnasium.make("FunctionalGrasp-Mug-v0")` works, while a client that only speaks the protocol
+# (`forcegrasp.protocol`, `forcegrasp.policy`, `forcegrasp.task`) loads neither gymnasium nor mujoco.
+if "gymnasium" in sys.modules:
+    import forcegrasp.env  # noqa: E402,F401

@@ -74,7 +74,6 @@ class ActorConfig:
     random_steps: int = _f(1000, "uniformly random actions for this many env steps per actor", min=0)
     publish_batch: int = _f(64, "transitions per published TransitionBatch", min=1)
     max_buffered_batches: int = _f(2000, "batches kept while the learner is away (oldest dropped)", min=1)
-    weights_poll_s: float = _f(0.0, "extra wait for new weights between steps (0: never wait)", min=0.0)
 
 
 @dataclass

@@ -43,30 +43,16 @@ import numpy as np
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
 from forcegrasp.scene import SceneIndex, build_model, resting_height, slide_axes
+from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
+    ACTION_LAYOUT,
+    ACTION_STEPS,
+    OBS_LAYOUT,
+    PRIV_DIM,
+    PRIVILEGED_LAYOUT,
+    action_scale,
+    observation_layout,
+)
 
-OBS_LAYOUT = (
-    ("joint_torques", 24),
-    ("joint_angles", 24),
-    ("hand_pose", 6),
-    ("h", 1),
-    ("base_targets", 6),
-    ("prev_hand_pose", 6),
-    ("prev_h", 1),
-    ("goal_pose", 6),
-    ("goal_palm", 3),
-)
-ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
-# Simulator state the deployed policy never observes, for an asymmetric critic (learner only):
-# where the object is (its jitter), where the palm is relative to its goal on the object, how far
-# the object has been pushed (all three in cm, so that they are of order one like the flags), and
-# which fingertips (ff mf rf lf th) and whether any part of the hand touch it.
-PRIVILEGED_LAYOUT = (
-    ("object_offset", 2),
-    ("palm_error", 3),
-    ("object_displacement", 3),
-    ("fingertip_contacts", 5),
-    ("hand_contact", 1),
-)
 # A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
 # than this, in m); near some edges of the ±2 cm square it would. Random resets redraw such offsets.
 OVERLAP_TOLERANCE = 1e-4
@@ -82,20 +68,6 @@ def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, wh
             return offset
     raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
                        "in a row; relabel the pre-grasp")
-
-
-#: Largest change per step of the base translation targets (m), rotation targets (rad) and h.
-ACTION_STEPS = (0.004, 0.02, 0.025)
-
-
-def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
-                 max_h_step: float = ACTION_STEPS[2]) -> np.ndarray:
-    """What action +1 means in env units, per component: the policy file's ``action_high``."""
-    return np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
-
-
-def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
-    return OBS_LAYOUT if force_feedback else OBS_LAYOUT[1:]
 
 
 @dataclass(frozen=True)
@@ -333,10 +305,10 @@ class FunctionalGraspEnv(gym.Env):
         return np.concatenate(parts, dtype=np.float32)
 
     def privileged_state(self) -> np.ndarray:
-        """`PRIVILEGED_LAYOUT` for the current state (14 float32): what an asymmetric critic may
+        """`PRIVILEGED_LAYOUT` for the current state (PRIV_DIM float32): what an asymmetric critic may
         see in simulation; never part of the observation."""
         d, ix = self.data, self.ix
-        out = np.zeros(14, np.float32)
+        out = np.zeros(PRIV_DIM, np.float32)
         out[0:2] = 100.0 * self.offset
         out[2:5] = 100.0 * (self._palm_pos - self._object_pos - self.label.goal_palm)
         out[5:8] = 100.0 * (self._object_pos - self.object_start)
@@ -412,3 +384,17 @@ def _block(array: np.ndarray, index: np.ndarray) -> np.ndarray:
     if index.size and np.array_equal(index, np.arange(index[0], index[0] + index.size)):
         return array[index[0] : index[0] + index.size]
     raise ValueError("the env expects contiguous base and hand blocks in qpos and ctrl")
+
+
+def register_envs() -> None:
+    """Gymnasium ids FunctionalGrasp-<Object>-v0; kwargs pass through to FunctionalGraspEnv."""
+    from gymnasium.envs.registration import register, registry
+
+    for object_name, env_name in (("spray_bottle", "SprayBottle"), ("power_drill", "PowerDrill"), ("mug", "Mug"),
+                                  ("camera", "Camera")):
+        env_id = f"FunctionalGrasp-{env_name}-v0"
+        if env_id not in registry:
+            register(id=env_id, entry_point="forcegrasp.env:FunctionalGraspEnv", kwargs={"object_name": object_name})
+
+
+register_envs()

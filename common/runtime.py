@@ -11,8 +11,8 @@ import threading
 import zenoh
 
 from forcegrasp.config import Config
-from forcegrasp.env import ACTION_LAYOUT, FunctionalGraspEnv, action_scale, observation_layout
-from forcegrasp.policy_file import PolicyMetadata, actor_param_shapes
+from forcegrasp import task
+from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.transport import open_session
 
 
@@ -40,7 +40,10 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-def make_env(config: Config, **overrides) -> FunctionalGraspEnv:
+def make_env(config: Config, **overrides):
+    """The FunctionalGraspEnv of this configuration (imports the simulator only when called)."""
+    from forcegrasp.env import FunctionalGraspEnv
+
     e = config.env
     kwargs = dict(
         force_feedback=e.force_feedback,
@@ -56,20 +59,5 @@ def make_env(config: Config, **overrides) -> FunctionalGraspEnv:
 def policy_metadata(config: Config, hidden, training_steps: int = 0, score: float | None = None,
                     obs_norm: bool = False, **extra) -> PolicyMetadata:
     """What a policy trained under ``config`` looks like: the contract between learner and actors."""
-    return PolicyMetadata(
-        obs_layout=list(observation_layout(config.env.force_feedback)),
-        action_layout=list(ACTION_LAYOUT),
-        hidden=tuple(hidden),
-        object_name=config.env.object,
-        force_feedback=config.env.force_feedback,
-        training_steps=training_steps,
-        eval_score=score,
-        obs_norm=obs_norm,
-        action_low=[-float(x) for x in action_scale()],
-        action_high=[float(x) for x in action_scale()],
-        extra={"run": config.run.name, **extra},
-    )
-
-
-def expected_weight_shapes(config: Config, hidden) -> dict[str, tuple[int, ...]]:
-    return actor_param_shapes(policy_metadata(config, hidden))
+    return task.policy_metadata(config.env.object, config.env.force_feedback, hidden, obs_norm=obs_norm,
+                                training_steps=training_steps, score=score, extra={"run": config.run.name, **extra})

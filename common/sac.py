@@ -85,6 +85,26 @@ class SACConfig:
         self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
 
 
+def sac_config(config) -> SACConfig:
+    """SACConfig with a `forcegrasp.config.Config`'s [learner.sac] overrides and its run seed; unknown
+    or ill-typed keys are a ConfigError. The learner and the actors (n-step horizon, discount, critic
+    inputs) read SAC settings through this one function."""
+    import dataclasses
+
+    from forcegrasp.config import ConfigError
+
+    known = {f.name: f for f in dataclasses.fields(SACConfig)}
+    overrides = {}
+    for key, value in config.learner.sac.items():
+        if key not in known:
+            raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
+        overrides[key] = tuple(value) if isinstance(value, list) else value
+    try:
+        return dataclasses.replace(SACConfig(seed=config.run.seed), **overrides)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"learner.sac: {exc}") from None
+
+
 class TwinQ(nn.Module):
     """`n` independent Q-networks Q_i(s, a) evaluated together, as an ensemble.
 

@@ -26,7 +26,9 @@ import time
 import numpy as np
 
 from forcegrasp.config import Config, add_config_arguments, config_from_args
+from forcegrasp import task
 from forcegrasp.nstep import NStepAccumulator
+from forcegrasp.sac import sac_config
 from forcegrasp.policy import Policy, configure_threads
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata
 from forcegrasp.protocol import (
@@ -63,9 +65,7 @@ class ActorService:
         base_seed = config.run.seed + 1000 if seed is None else seed
         self.rng = np.random.default_rng(base_seed)
         self.obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
-        self.obs_dim, self.act_dim = self.obs.shape[1], 7
-        from forcegrasp.services.learner.learner import sac_config
-
+        self.obs_dim, self.act_dim = self.obs.shape[1], task.ACT_DIM
         sac = sac_config(config)  # the learner's n-step horizon, discount and critic inputs
         self.privileged = bool(sac.privileged_critic)
         self.priv = np.stack([env.privileged_state() for env in self.envs]) if self.privileged else None

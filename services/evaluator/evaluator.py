@@ -37,6 +37,7 @@ from typing import Callable
 
 from forcegrasp.config import Config, add_config_arguments, config_from_args
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
+from forcegrasp.task import check_policy
 from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
 from forcegrasp.services.evaluator.endpoint import (
     BestPolicy,
@@ -280,12 +281,10 @@ class EvaluatorService:
         except PolicyFileError as exc:
             raise CheckpointRejected(str(exc)) from None
         env = self.config.env
-        obs_dim = 77 if env.force_feedback else 53
-        if meta.obs_dim != obs_dim or meta.act_dim != 7:
-            raise CheckpointRejected(f"{source}: policy maps {meta.obs_dim} -> {meta.act_dim}, this run's env "
-                                     f"needs {obs_dim} -> 7 (force_feedback={env.force_feedback})")
-        if meta.object_name and meta.object_name != env.object:
-            raise CheckpointRejected(f"{source}: policy is for object {meta.object_name!r}, this run is {env.object!r}")
+        try:
+            check_policy(meta, env.object, env.force_feedback)
+        except ValueError as exc:
+            raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback})") from None
         return weights, meta
 
     def _policy(self, weights, meta):

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from forcegrasp.config import Config, ConfigError, add_config_arguments, config_from_args
-from forcegrasp.env import ACTION_LAYOUT, PRIVILEGED_LAYOUT, observation_layout
+from forcegrasp.config import Config, add_config_arguments, config_from_args
+from forcegrasp import task
 from forcegrasp.policy import weights_of
 from forcegrasp.protocol import (
     Checkpoint,
@@ -39,7 +39,7 @@ from forcegrasp.protocol import (
 )
 from forcegrasp.replay import ReplayBuffer
 from forcegrasp.runtime import open_service_session, policy_metadata, stop_on_signals
-from forcegrasp.sac import SAC, SACConfig
+from forcegrasp.sac import SAC, sac_config
 from forcegrasp.transport import (
     QueueSubscriber,
     close_session,
@@ -49,24 +49,10 @@ from forcegrasp.transport import (
 )
 
 log = logging.getLogger("forcegrasp.learner")
-ACT_DIM = sum(n for _, n in ACTION_LAYOUT)
+ACT_DIM = task.ACT_DIM
 MAX_UPDATES_PER_LOOP = 8  # then look at the network again, so ingestion never starves
 MAX_DRAIN_PER_LOOP = 512
 MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
-
-
-def sac_config(config: Config) -> SACConfig:
-    """SACConfig with the [learner.sac] overrides; unknown or ill-typed keys are a ConfigError."""
-    known = {f.name: f for f in dataclasses.fields(SACConfig)}
-    overrides = {}
-    for key, value in config.learner.sac.items():
-        if key not in known:
-            raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
-        overrides[key] = tuple(value) if isinstance(value, list) else value
-    try:
-        return dataclasses.replace(SACConfig(seed=config.run.seed), **overrides)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"learner.sac: {exc}") from None
 
 
 @dataclasses.dataclass
@@ -91,8 +77,8 @@ class LearnerService:
         self.dir = Path(config.run.output_dir) / config.run.name
         self.dir.mkdir(parents=True, exist_ok=True)
         self.sac_cfg = sac_config(config)
-        self.obs_dim = sum(n for _, n in observation_layout(config.env.force_feedback))
-        self.priv_dim = sum(n for _, n in PRIVILEGED_LAYOUT) if self.sac_cfg.privileged_critic else 0
+        self.obs_dim = task.obs_dim(config.env.force_feedback)
+        self.priv_dim = task.PRIV_DIM if self.sac_cfg.privileged_critic else 0
         self.limits = Limits(max_payload_bytes=config.learner.max_payload_mb * 2**20)
         self.rejects = RejectCounter()
         self.actors: dict[str, ActorTrack] = collections.defaultdict(ActorTrack)
@@ -113,7 +99,11 @@ class LearnerService:
         ckpt = self.dir / "checkpoint.safetensors"
         if ckpt.exists():
             self.sac, extra = SAC.load_checkpoint(ckpt)
-            self.buffer = ReplayBuffer.load(self.dir / "replay.npz", capacity=self.sac_cfg.buffer_size)
+            replay = self.dir / "replay.npz"
+            if replay.exists() and self.config.learner.snapshot_replay:
+                self.buffer = ReplayBuffer.load(replay, capacity=self.sac_cfg.buffer_size)
+            else:  # learner.snapshot_replay = false: networks and counters resume, the replay starts empty
+                self.buffer = ReplayBuffer(self.obs_dim, ACT_DIM, self.sac_cfg.buffer_size, priv_dim=self.priv_dim)
             self.ingested = int(extra["ingested"])
             self.policy_version = int(extra["policy_version"])
             self._last_checkpoint = self._last_policy = self.ingested
@@ -149,7 +139,8 @@ class LearnerService:
 
     def checkpoint(self) -> Path:
         """Replay and policy first, learner state last: the learner file marks a complete set."""
-        self.buffer.save(self.dir / "replay.npz")
+        if self.config.learner.snapshot_replay:
+            self.buffer.save(self.dir / "replay.npz")
         policy_path = self.save_policy()
         self.sac.save_checkpoint(self.dir / "checkpoint.safetensors",
                                  extra={"ingested": self.ingested, "policy_version": self.policy_version})

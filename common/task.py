@@ -1,0 +1,93 @@
+"""The task contract, without the simulator: what a FunctionalGrasp policy sees and does.
+
+Every size in ForceGrasp comes from here: the observation layout (Table I of the paper; 77 numbers,
+53 without force feedback), the action layout (7), the privileged simulator state an asymmetric
+critic may see in training (14, never part of the observation) and what an action of +1 means in
+env units. `policy_metadata` builds the metadata of a policy for a task and `check_policy` tells
+whether a policy file fits an env's settings. Importing this module loads neither mujoco nor
+gymnasium, so protocol clients, the learner and tools can use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from forcegrasp.policy_file import PolicyMetadata
+
+#: Table I, in order. Torques come first and are the part dropped without force feedback.
+OBS_LAYOUT = (
+    ("joint_torques", 24),
+    ("joint_angles", 24),
+    ("hand_pose", 6),
+    ("h", 1),
+    ("base_targets", 6),
+    ("prev_hand_pose", 6),
+    ("prev_h", 1),
+    ("goal_pose", 6),
+    ("goal_palm", 3),
+)
+ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
+ACT_DIM = sum(n for _, n in ACTION_LAYOUT)
+
+# Simulator state the deployed policy never observes, for an asymmetric critic (learner only):
+# where the object is (its jitter), where the palm is relative to its goal on the object, how far
+# the object has been pushed (all three in cm, so that they are of order one like the flags), and
+# which fingertips (ff mf rf lf th) and whether any part of the hand touch it.
+PRIVILEGED_LAYOUT = (
+    ("object_offset", 2),
+    ("palm_error", 3),
+    ("object_displacement", 3),
+    ("fingertip_contacts", 5),
+    ("hand_contact", 1),
+)
+PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
+
+#: Largest change per step of the base translation targets (m), rotation targets (rad) and h.
+ACTION_STEPS = (0.004, 0.02, 0.025)
+
+
+def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
+    return OBS_LAYOUT if force_feedback else OBS_LAYOUT[1:]
+
+
+def obs_dim(force_feedback: bool = True) -> int:
+    return sum(n for _, n in observation_layout(force_feedback))
+
+
+def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
+                 max_h_step: float = ACTION_STEPS[2]) -> np.ndarray:
+    """What action +1 means in env units, per component: the policy file's ``action_high``."""
+    return np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
+
+
+def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm: bool = False,
+                    training_steps: int = 0, score: float | None = None, extra: dict | None = None) -> PolicyMetadata:
+    """The metadata of a policy for this task: layouts, action scaling, architecture."""
+    scale = action_scale()
+    return PolicyMetadata(
+        obs_layout=list(observation_layout(force_feedback)),
+        action_layout=list(ACTION_LAYOUT),
+        hidden=tuple(hidden),
+        object_name=object_name,
+        force_feedback=bool(force_feedback),
+        training_steps=int(training_steps),
+        eval_score=score,
+        obs_norm=bool(obs_norm),
+        action_low=[-float(x) for x in scale],
+        action_high=[float(x) for x in scale],
+        extra=dict(extra or {}),
+    )
+
+
+def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_feedback: bool | None = None) -> None:
+    """Raise ValueError saying why a policy does not fit an env with these settings."""
+    ff = meta.force_feedback if force_feedback is None else bool(force_feedback)
+    if meta.obs_layout != list(observation_layout(ff)):
+        raise ValueError(f"policy observes {meta.obs_dim} numbers ({[n for n, _ in meta.obs_layout]}); "
+                         f"the env with force_feedback={ff} gives {obs_dim(ff)} ({[n for n, _ in observation_layout(ff)]})")
+    if meta.action_layout != list(ACTION_LAYOUT):
+        raise ValueError(f"policy acts with {meta.act_dim} numbers {meta.action_layout}; the env takes {ACTION_LAYOUT}")
+    if object_name is not None and meta.object_name and meta.object_name != object_name:
+        raise ValueError(f"policy is for object {meta.object_name!r}, the env holds {object_name!r}")
+    if meta.action_high is not None and not np.allclose(meta.action_high, action_scale()):
+        raise ValueError(f"policy was trained with action steps {meta.action_high}, the env uses {list(action_scale())}")

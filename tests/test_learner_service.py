@@ -1,0 +1,39 @@
+"""Learner service settings that act without the network: replay snapshots and seeds."""
+
+import numpy as np
+
+from forcegrasp.config import load_config
+from forcegrasp.launcher import service_commands
+from forcegrasp.protocol import Keys, TransitionBatch, encode_transitions
+from forcegrasp.services.learner.learner import LearnerService
+
+
+def _config(tmp_path, *extra):
+    return load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=r", "learner.sac.hidden=[8, 8]",
+                                  "learner.sac.buffer_size=1000", *extra])
+
+
+def _feed(service, n=32):
+    rng = np.random.default_rng(0)
+    batch = TransitionBatch("a", 0, 0, rng.normal(size=(n, 77)), rng.uniform(-1, 1, (n, 7)), rng.normal(size=n),
+                            rng.normal(size=(n, 77)), np.zeros(n, bool), np.zeros(n, bool))
+    assert service.ingest(Keys("r").transitions("a"), encode_transitions(batch)) == n
+
+
+def test_snapshot_replay_false_checkpoints_without_the_replay_and_resumes_empty(tmp_path):
+    service = LearnerService(_config(tmp_path, "learner.snapshot_replay=false"))
+    _feed(service)
+    service.checkpoint()
+    assert not (tmp_path / "r" / "replay.npz").exists() and (tmp_path / "r" / "checkpoint.safetensors").exists()
+    again = LearnerService(_config(tmp_path, "learner.snapshot_replay=false"))
+    assert again.ingested == 32 and len(again.buffer) == 0
+    with_replay = LearnerService(_config(tmp_path / "b"))
+    _feed(with_replay)
+    with_replay.checkpoint()
+    assert len(LearnerService(_config(tmp_path / "b")).buffer) == 32
+
+
+def test_actor_seeds_follow_run_seed(tmp_path):
+    seeds = {s: [c[c.index("--seed") + 1] for name, c in service_commands(tmp_path / "c.toml", 2, seed=s).items()
+                 if name.startswith("actor")] for s in (0, 7)}
+    assert seeds == {0: ["1000", "2000"], 7: ["1007", "2007"]}
