@@ -68,6 +68,7 @@ class SACConfig:
     n_step: int = 1  # n-step returns, built by the actors (forcegrasp.nstep); bootstrap with gamma^h
     privileged_critic: bool = False  # asymmetric critic: also sees simulator state the actor never does
     obs_norm: bool = False  # running mean/std of observations, frozen into every policy file
+    actor_ema: float = 0.0  # >0: actors and policy files get a Polyak average of the actor at this rate
     tau: float = 0.005  # Polyak rate of the target critics
     target_update_interval: int = 1  # updates between target-critic updates
     # Entropy temperature.
@@ -216,6 +217,24 @@ class SAC:
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="sac-actor-grads") if parallel else None
         self.num_updates = 0
         self.obs_rms = RunningMeanStd(obs_dim) if cfg.obs_norm else None
+        # Weight averaging: the policy handed out (weights, snapshots) is a slow average of the one
+        # being trained, which damps the swings of successive snapshots.
+        self.actor_avg = None
+        if cfg.actor_ema > 0:
+            self.actor_avg = Actor(obs_dim, act_dim, cfg.hidden, cfg.log_std_bounds, obs_norm=cfg.obs_norm)
+            self.actor_avg = self.actor_avg.to(self.device).requires_grad_(False)
+            self.actor_avg.load_state_dict(self.actor.state_dict())
+            self._avg_params, self._live_params = list(self.actor_avg.parameters()), list(self.actor.parameters())
+
+    @property
+    def deployed_actor(self) -> Actor:
+        """The actor that actors run and policy files hold: the average when ``actor_ema`` > 0."""
+        if self.actor_avg is None:
+            return self.actor
+        if self.obs_rms is not None:  # same input statistics as the live actor
+            self.actor_avg.obs_mean.copy_(self.actor.obs_mean)
+            self.actor_avg.obs_std.copy_(self.actor.obs_std)
+        return self.actor_avg
 
     def observe(self, obs: np.ndarray) -> None:
         """Fold new observations into the running statistics the actor (and critic) normalise with."""
@@ -324,6 +343,9 @@ class SAC:
         if self.num_updates % self.config.target_update_interval == 0:
             with torch.no_grad():
                 torch._foreach_lerp_(self.target_params, self.critic_params, self.config.tau)
+        if self.actor_avg is not None:
+            with torch.no_grad():
+                torch._foreach_lerp_(self._avg_params, self._live_params, self.config.actor_ema)
 
         if not metrics:
             return {}
@@ -358,7 +380,7 @@ class SAC:
         if metadata is None:
             metadata = PolicyMetadata([("obs", self.obs_dim)], [("action", self.act_dim)], self.config.hidden,
                                       training_steps=self.num_updates, obs_norm=self.config.obs_norm)
-        return Policy.from_actor(self.actor, metadata, device=device)
+        return Policy.from_actor(self.deployed_actor, metadata, device=device)
 
     # -- checkpoints ----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, torch.Tensor]:
@@ -411,7 +433,8 @@ class SAC:
         self.optimizer.load_state_dict({"state": slots, "param_groups": self.optimizer.state_dict()["param_groups"]})
 
     def _modules(self):
-        return (("actor", self.actor), ("critic", self.critic), ("critic_target", self.critic_target))
+        modules = (("actor", self.actor), ("critic", self.critic), ("critic_target", self.critic_target))
+        return modules + ((("actor_avg", self.actor_avg),) if self.actor_avg is not None else ())
 
     def save_checkpoint(self, path: str | os.PathLike, extra: dict | None = None) -> Path:
         """Atomic safetensors file: the tensors of `state_dict`, config and `extra` as header JSON."""

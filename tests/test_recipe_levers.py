@@ -172,3 +172,22 @@ def test_learner_counts_and_drops_bad_privileged_state(tmp_path):
     assert service.ingest(key, encode_transitions(_batch())) == 0  # an actor without privileged state
     assert len(service.buffer) == 8 and service.rejects.counts() == {"missing_field": 1}
     assert service.buffer.sample(4, np.random.default_rng(0)).privileged.shape == (4, 14)
+
+
+def test_actor_ema_hands_out_the_polyak_average_and_checkpoints_it(tmp_path):
+    sac = SAC(OBS, ACT, SACConfig(seed=0, hidden=(16, 16), actor_ema=0.1), priv_dim=0)
+    buf, _ = filled_buffer(priv_dim=0)
+    before = {k: v.clone() for k, v in sac.actor.state_dict().items()}
+    sac.update(buf.sample(64, np.random.default_rng(0)))
+    live, avg = sac.actor.state_dict(), sac.deployed_actor.state_dict()
+    for k in live:  # one update: avg = 0.9 * initial + 0.1 * trained
+        assert torch.allclose(avg[k], 0.9 * before[k] + 0.1 * live[k], atol=1e-6), k
+    assert any(not torch.equal(avg[k], live[k]) for k in live)
+    meta = PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16))
+    x = np.ones((1, OBS), np.float32)
+    with torch.no_grad():
+        want = sac.deployed_actor.deterministic(torch.as_tensor(x)).numpy()
+    assert np.allclose(sac.policy(meta)(x), want, atol=1e-6)
+    sac.save_checkpoint(tmp_path / "c.safetensors")
+    back, _ = SAC.load_checkpoint(tmp_path / "c.safetensors")
+    assert all(torch.equal(v, back.deployed_actor.state_dict()[k]) for k, v in avg.items())

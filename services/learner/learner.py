@@ -122,7 +122,7 @@ class LearnerService:
     def make_weights(self) -> bytes:
         """Encode the current actor as the next policy version (cached for weights/latest)."""
         self.policy_version += 1
-        w = Weights(self.policy_version, self.sac.num_updates, weights_of(self.sac.actor),
+        w = Weights(self.policy_version, self.sac.num_updates, weights_of(self.sac.deployed_actor),
                     meta={"policy_metadata": self.metadata().to_json()})
         self.latest_weights = encode_weights(w, self.limits)
         return self.latest_weights

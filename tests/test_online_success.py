@@ -1,0 +1,23 @@
+"""Issue 15: with weights frozen, the success rate a real actor process reports is the policy's.
+
+The fixture is a camera policy from a 20-minute screening run (best checkpoint, step 253,888,
+36 % deterministic on 50 held-out placements, about 30 % with sampled actions): a rate away from
+0 and 1, so that a bookkeeping error (episodes counted twice, lost, or mixed across resets)
+would show.
+"""
+
+from pathlib import Path
+
+from forcegrasp.online_check import offline_successes, online_successes, two_proportion_z
+
+POLICY = Path(__file__).parent / "data" / "camera-screening-policy.safetensors"
+EPISODES = 150
+
+
+def test_frozen_policy_online_and_offline_success_agree():
+    online = online_successes(POLICY, EPISODES, envs=8, timeout_s=400)
+    offline = offline_successes(POLICY, EPISODES)
+    assert len(online) == len(offline) == EPISODES
+    k1, k2 = sum(online), sum(offline)
+    assert 0 < k2 < EPISODES  # the fixture really sits between 0 and 1
+    assert abs(two_proportion_z(k1, EPISODES, k2, EPISODES)) < 2.576, (k1, k2)  # 99 % two-sided
