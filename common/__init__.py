@@ -18,4 +18,4 @@ ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve(
 # `gymnasium.make("FunctionalGrasp-Mug-v0")` works, while a client that only speaks the protocol
 # (`forcegrasp.protocol`, `forcegrasp.policy`, `forcegrasp.task`) loads neither gymnasium nor mujoco.
 if "gymnasium" in sys.modules:
-    import forcegrasp.env  # noqa: E402,F401
+    from forcegrasp import env as _env  # noqa: E402,F401  (registers the ids)

@@ -29,17 +29,19 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-RECORD = "experiment.json"
+from forcegrasp.rundir import RunDir
+
+RECORD = RunDir(".").experiment.name
 
 
 # ---------------------------------------------------------------------------------- the record
 def load_record(run_dir: Path) -> dict | None:
-    path = Path(run_dir) / RECORD
+    path = RunDir(run_dir).experiment
     return json.loads(path.read_text()) if path.is_file() else None
 
 
 def save_record(run_dir: Path, record: dict) -> None:
-    path = Path(run_dir) / RECORD
+    path = RunDir(run_dir).experiment
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(record, indent=1))
     os.replace(tmp, path)
@@ -48,20 +50,18 @@ def save_record(run_dir: Path, record: dict) -> None:
 def _current_files(run_dir: Path) -> dict:
     """The learner's latest snapshot and the evaluator's best right now, with their steps."""
     from forcegrasp.policy_file import load_policy_file
-    from forcegrasp.services.evaluator.topk import read_run_index, top_folder
+    from forcegrasp.rundir import RunDir
 
     out = {}
-    latest = run_dir / "policy.safetensors"
+    latest = RunDir(run_dir).latest_policy
     if latest.is_file():
         out["latest"] = latest
     try:
-        index = read_run_index(run_dir)
+        best = RunDir(run_dir).best_policy()
     except (OSError, ValueError):
-        index = None
-    if index and index.get("best"):
-        best = top_folder(run_dir) / index["best"]
-        if best.is_file():
-            out["best"] = best
+        best = None
+    if best is not None:
+        out["best"] = best
     steps = {}
     for kind, path in out.items():
         try:
@@ -73,7 +73,7 @@ def _current_files(run_dir: Path) -> dict:
 
 def take_mark(run_dir: Path, record: dict, minute: float, elapsed_s: float) -> dict:
     """Freeze the current best and latest policy files as this mark's."""
-    marks_dir = run_dir / "marks"
+    marks_dir = RunDir(run_dir).marks
     marks_dir.mkdir(exist_ok=True)
     mark = {"minute": minute, "elapsed_s": round(elapsed_s, 1), "files": {}, "steps": {}, "test": {}}
     for kind, (path, step) in _current_files(run_dir).items():
@@ -133,7 +133,7 @@ def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
     todo = [(m, kind) for m in record["marks"] for kind in m["files"] if kind not in m["test"]]
     if not todo:
         return
-    paths = [run_dir / "marks" / m["files"][kind] for m, kind in todo]
+    paths = [RunDir(run_dir).marks / m["files"][kind] for m, kind in todo]
     scores = test_files(paths, record["episodes"], record["test_seed"], record.get("test_env", {}), workers, log)
     for (m, kind), s in zip(todo, scores):
         m["test"][kind] = s
@@ -155,7 +155,7 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
                    evaluator: bool = True, workers: int | None = None, log=print) -> dict:
     from forcegrasp.launcher import up
 
-    run_dir = Path(config.run.output_dir) / config.run.name
+    run_dir = RunDir.of(config).root
     run_dir.mkdir(parents=True, exist_ok=True)
     record = load_record(run_dir) or {
         "label": label, "seed": config.run.seed, "object": config.env.object,
@@ -193,7 +193,7 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         thread = threading.Thread(target=marker, daemon=True, name="marks")
         thread.start()
         try:
-            up(config, run_dir / "cluster.toml", stop_after=remaining, log=log, evaluator=evaluator)
+            up(config, RunDir(run_dir).cluster_config, stop_after=remaining, log=log, evaluator=evaluator)
         finally:
             stop.set()
             thread.join()

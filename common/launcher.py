@@ -17,6 +17,7 @@ from pathlib import Path
 
 from forcegrasp.config import add_config_arguments, config_from_args
 from forcegrasp.protocol import Keys, ProtocolError, decode_stats
+from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import open_service_session
 from forcegrasp.transport import QueueSubscriber, close_session
 
@@ -75,16 +76,16 @@ def stop_all(procs: dict[str, subprocess.Popen], log=print, grace_s: float = GRA
 
 
 def up(config, config_path: Path, stop_after: float | None = None, log=print, evaluator: bool = True) -> int:
-    run_dir = Path(config.run.output_dir) / config.run.name
-    run_dir.mkdir(parents=True, exist_ok=True)
+    files = RunDir.of(config)
+    files.root.mkdir(parents=True, exist_ok=True)
     config_path.write_text(config.to_toml())
-    logs = run_dir / "logs"
+    logs = files.logs
     logs.mkdir(exist_ok=True)
     commands = service_commands(config_path, config.actor.num_actors, evaluator, config.run.seed)
     procs: dict[str, subprocess.Popen] = {}
 
     def start(name: str) -> None:
-        out = open(logs / f"{name}.log", "ab")
+        out = open(files.log(name), "ab")
         procs[name] = subprocess.Popen(commands[name], stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
 
     stopping = {"flag": False}
@@ -115,7 +116,7 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
                     pass
             for name, p in list(procs.items()):
                 if p.poll() is not None:
-                    log(f"{name} exited with {p.returncode}; restarting it (see {logs / (name + '.log')})")
+                    log(f"{name} exited with {p.returncode}; restarting it (see {files.log(name)})")
                     start(name)
             if time.monotonic() - last_line > 3.0:
                 log(progress_line(latest))
@@ -138,5 +139,5 @@ def main(argv=None) -> int:
                         help="leave the evaluator out (run it on another machine, or measure training alone)")
     args = parser.parse_args(argv)
     config = config_from_args(args)
-    path = Path(config.run.output_dir) / config.run.name / "cluster.toml"
+    path = RunDir.of(config).cluster_config
     return up(config, path, args.stop_after, evaluator=not args.no_evaluator)

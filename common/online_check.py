@@ -18,8 +18,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 
 def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> float:
     """z statistic of the difference of two binomial rates (pooled variance); 0 when both are 0 or 1."""

@@ -33,9 +33,9 @@ def read_scalars(tb_dir: Path) -> dict[str, tuple[list[int], list[float]]]:
 
 def read_evaluations(run_dir: Path) -> dict[str, tuple[list[int], list[float]]]:
     """The evaluator's history (every evaluated checkpoint's test score), if the run has one."""
-    from forcegrasp.services.evaluator.topk import read_run_index
+    from forcegrasp.rundir import RunDir
 
-    index = read_run_index(run_dir)
+    index = RunDir(run_dir).read_index()
     if index is None:
         return {}
     history = sorted(index.get("history", []), key=lambda h: h["step"])
@@ -49,7 +49,9 @@ def run_label(run_dir: Path) -> str:
     try:
         import tomllib
 
-        env = tomllib.loads((run_dir / "config.toml").read_text()).get("env", {})
+        from forcegrasp.rundir import RunDir
+
+        env = tomllib.loads(RunDir(run_dir).config.read_text()).get("env", {})
         return f"{run_dir.name} ({env['object']}, force feedback {'on' if env['force_feedback'] else 'off'})"
     except (OSError, KeyError, ValueError):
         return run_dir.name
@@ -63,9 +65,12 @@ def plot_runs(run_dirs: list[Path], out: Path, title: str | None = None) -> Path
 
     runs = []
     for run_dir in run_dirs:
-        scalars = read_scalars(run_dir / "tb") if (run_dir / "tb").is_dir() else {}
+        from forcegrasp.rundir import RunDir
+
+        tb = RunDir(run_dir).tensorboard
+        scalars = read_scalars(tb) if tb.is_dir() else {}
         if not scalars:
-            raise FileNotFoundError(f"no TensorBoard scalars under {run_dir / 'tb'}")
+            raise FileNotFoundError(f"no TensorBoard scalars under {tb}")
         runs.append((run_label(run_dir), {**scalars, **read_evaluations(run_dir)}))
     fig, axes = plt.subplots(2, 4, figsize=(18, 6.5))
     for ax, (tag, label) in zip(axes.flat, PANELS):

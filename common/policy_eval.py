@@ -25,13 +25,13 @@ SWEEPABLE = ("mass_scale", "torque_noise_std", "jitter", "object_tolerance", "pa
 
 def resolve_policy(path: Path) -> Path:
     """A policy file as given, or a run directory's best checkpoint (its evaluator's top k)."""
-    from forcegrasp.services.evaluator.topk import read_run_index, top_folder
+    from forcegrasp.rundir import RunDir
 
     if path.is_file():
         return path
-    index = read_run_index(path) if path.is_dir() else None
-    if index and index.get("best"):
-        return top_folder(path) / index["best"]
+    best = RunDir(path).best_policy() if path.is_dir() else None
+    if best is not None:
+        return best
     raise FileNotFoundError(f"{path}: neither a policy file nor a run directory with an evaluated best checkpoint")
 
 

@@ -46,8 +46,8 @@ from forcegrasp.services.evaluator.endpoint import (
     declare_best_queryable,
 )
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
-from forcegrasp.services.evaluator.topk import (MAX_POLICY_BYTES, Member, TopK, policy_file_name, sha256, step_of,
-                                               top_folder)
+from forcegrasp.rundir import RunDir, policy_file_name, step_of
+from forcegrasp.services.evaluator.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
 
@@ -82,10 +82,11 @@ class EvaluatorService:
         self.newest_first = newest_first
         self.instance = instance
         self.keys = Keys(config.run.name)
-        self.run_dir = Path(config.run.output_dir) / config.run.name
-        self.checkpoint_dir = self.run_dir / "checkpoints"
-        self.dir = top_folder(self.run_dir).parent
-        self.episodes_dir = self.dir / "episodes"
+        self.files = RunDir.of(config)
+        self.run_dir = self.files.root
+        self.checkpoint_dir = self.files.checkpoints
+        self.dir = self.files.evaluator
+        self.episodes_dir = self.files.episodes
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock_file = self._take_lock()
         ev = config.evaluator
@@ -93,7 +94,7 @@ class EvaluatorService:
         clear = self._ensure_env().is_clear
         self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval", clear)
         self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank", clear)
-        self.top = TopK(top_folder(self.run_dir), ev.top_k, run=config.run.name)
+        self.top = TopK(self.files.top, ev.top_k, run=config.run.name)
         self.top.crash_hook = _crash_hook_from_env()
         self.log_episodes = log_episodes
         self.mcap_backend = mcap_backend
@@ -489,7 +490,7 @@ class EvaluatorService:
         self._stop = stop
         self.load()
         self.start_http()
-        self.writer = SummaryWriter(str(self.run_dir / "tb"), filename_suffix=".evaluator")
+        self.writer = SummaryWriter(str(self.files.tensorboard), filename_suffix=".evaluator")
         session = open_service_session(self.config, "evaluator")
         stats_thread = None
         try:

@@ -38,35 +38,14 @@ from typing import Any, Callable
 
 from forcegrasp.policy_file import PolicyFileError, atomic_write, load_policy_bytes
 
+from forcegrasp.rundir import INDEX_NAME, policy_file_name, step_of  # noqa: F401  (policy_file_name: re-exported)
+
 log = logging.getLogger("forcegrasp.evaluator")
 
-INDEX_NAME = "index.json"
 INDEX_FORMAT = "forcegrasp-evaluator-top"
 INDEX_VERSION = 1
-POLICY_RE = re.compile(r"^policy-(\d{1,18})\.safetensors$")
 MAX_POLICY_BYTES = 256 * 1024 * 1024
 HISTORY_LIMIT = 100_000
-
-
-def top_folder(run_dir: str | os.PathLike) -> Path:
-    """Where a run's evaluator keeps its top k: ``<run_dir>/evaluator/top``."""
-    return Path(run_dir) / "evaluator" / "top"
-
-
-def read_run_index(run_dir: str | os.PathLike) -> dict | None:
-    """A run's top-k index, read-only (plots, ``forcegrasp eval``); None if it has none yet."""
-    path = top_folder(run_dir) / INDEX_NAME
-    return json.loads(path.read_text()) if path.is_file() else None
-
-
-def policy_file_name(step: int) -> str:
-    return f"policy-{int(step):09d}.safetensors"
-
-
-def step_of(name: str) -> int | None:
-    """Learner step in a ``policy-<step>.safetensors`` name, or None for any other name."""
-    m = POLICY_RE.match(name)
-    return int(m.group(1)) if m else None
 
 
 def sha256(data: bytes) -> str:

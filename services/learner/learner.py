@@ -5,8 +5,8 @@ Zenoh's receive path only copies payloads into a bounded queue (a full queue pus
 actors' blocking publishers); decoding, validation and training happen in this loop. Every bad
 message is logged (the first few of each kind), counted by reason and dropped.
 
-Files in ``<output_dir>/<run>/``: ``checkpoint.safetensors`` (learner state, written last, marks
-a complete checkpoint), ``replay.npz``, ``policy.safetensors`` and ``checkpoints/policy-<step>``
+Files (named in `forcegrasp.rundir`): ``checkpoint.safetensors`` (learner state, written last,
+marks a complete checkpoint), ``replay.npz``, ``policy.safetensors`` and ``checkpoints/policy-<step>``
 files for the evaluator, ``tb/`` TensorBoard scalars, ``config.toml``.
 """
 
@@ -38,6 +38,7 @@ from forcegrasp.protocol import (
     encode_weights,
 )
 from forcegrasp.replay import ReplayBuffer
+from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import open_service_session, policy_metadata, stop_on_signals
 from forcegrasp.sac import SAC, sac_config
 from forcegrasp.transport import (
@@ -74,7 +75,8 @@ class LearnerService:
     def __init__(self, config: Config):
         self.config = config
         self.keys = Keys(config.run.name)
-        self.dir = Path(config.run.output_dir) / config.run.name
+        self.files = RunDir.of(config)
+        self.dir = self.files.root
         self.dir.mkdir(parents=True, exist_ok=True)
         self.sac_cfg = sac_config(config)
         self.obs_dim = task.obs_dim(config.env.force_feedback)
@@ -96,10 +98,10 @@ class LearnerService:
 
     # ------------------------------------------------------------------ state
     def _resume_or_start(self) -> None:
-        ckpt = self.dir / "checkpoint.safetensors"
+        ckpt = self.files.checkpoint
         if ckpt.exists():
             self.sac, extra = SAC.load_checkpoint(ckpt)
-            replay = self.dir / "replay.npz"
+            replay = self.files.replay
             if replay.exists() and self.config.learner.snapshot_replay:
                 self.buffer = ReplayBuffer.load(replay, capacity=self.sac_cfg.buffer_size)
             else:  # learner.snapshot_replay = false: networks and counters resume, the replay starts empty
@@ -112,7 +114,7 @@ class LearnerService:
         else:
             self.sac = SAC(self.obs_dim, ACT_DIM, self.sac_cfg, priv_dim=self.priv_dim)
             self.buffer = ReplayBuffer(self.obs_dim, ACT_DIM, self.sac_cfg.buffer_size, priv_dim=self.priv_dim)
-            (self.dir / "config.toml").write_text(self.config.to_toml())
+            self.files.config.write_text(self.config.to_toml())
         self.rng = np.random.default_rng(self.sac_cfg.seed + self.ingested)
 
     def metadata(self, score=None):
@@ -131,18 +133,18 @@ class LearnerService:
         """A policy snapshot for the evaluator (~350 KB): every ``evaluator.eval_every`` steps, the
         paper's test interval, far more often than the full checkpoint with its replay."""
         policy = self.sac.policy(self.metadata())
-        (self.dir / "checkpoints").mkdir(exist_ok=True)
-        path = policy.save(self.dir / "checkpoints" / f"policy-{self.ingested:09d}.safetensors")
-        policy.save(self.dir / "policy.safetensors")
+        self.files.checkpoints.mkdir(exist_ok=True)
+        path = policy.save(self.files.snapshot(self.ingested))
+        policy.save(self.files.latest_policy)
         self._last_policy = self.ingested
         return path
 
     def checkpoint(self) -> Path:
         """Replay and policy first, learner state last: the learner file marks a complete set."""
         if self.config.learner.snapshot_replay:
-            self.buffer.save(self.dir / "replay.npz")
+            self.buffer.save(self.files.replay)
         policy_path = self.save_policy()
-        self.sac.save_checkpoint(self.dir / "checkpoint.safetensors",
+        self.sac.save_checkpoint(self.files.checkpoint,
                                  extra={"ingested": self.ingested, "policy_version": self.policy_version})
         self._last_checkpoint = self.ingested
         return policy_path
@@ -251,7 +253,7 @@ class LearnerService:
 
         cfg = self.config.learner
         session = open_service_session(self.config, "learner")
-        self.writer = SummaryWriter(str(self.dir / "tb"))
+        self.writer = SummaryWriter(str(self.files.tensorboard))
         # A full queue blocks Zenoh for up to 5 s (back-pressure on the actors) before dropping.
         inbox = QueueSubscriber(session, self.keys.all_transitions, maxsize=cfg.ingest_queue, with_key=True,
                                 put_timeout=5.0)
