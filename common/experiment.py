@@ -224,7 +224,8 @@ def plot_records(records: list[dict], out: Path) -> Path:
         seeds = sorted({x["seed"] for x in records if x["label"] == r["label"]})
         style = dict(color=colours[r["label"]], marker=markers[seeds.index(r["seed"]) % len(markers)], ms=4)
         for kind, ls, lw in (("best", "-", 1.8), ("latest", ":", 1.0)):
-            pts = [(m["minute"], m["steps"].get(kind), m["test"][kind]["success_rate"]) for m in r["marks"]
+            # x: the environment steps trained by the mark (the latest snapshot's), for both curves
+            pts = [(m["minute"], m["steps"].get("latest"), m["test"][kind]["success_rate"]) for m in r["marks"]
                    if kind in m["test"]]
             if not pts:
                 continue
@@ -232,7 +233,7 @@ def plot_records(records: list[dict], out: Path) -> Path:
             axes[0].plot([p[0] for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, label=name, **style)
             axes[1].plot([p[1] or 0 for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, **style)
     axes[0].set_xlabel("wall-clock minutes (2-core machine, evaluator beside training)")
-    axes[1].set_xlabel("environment steps")
+    axes[1].set_xlabel("environment steps trained by the mark")
     axes[0].set_ylabel("held-out success %")
     for ax in axes:
         ax.set_ylim(-3, 103)
