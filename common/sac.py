@@ -86,8 +86,17 @@ class SACConfig:
         self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
 
 
+#: Named presets of SACConfig fields (``learner.recipe``); [learner.sac] overrides go on top.
+#: "paper": the paper's settings (one update per environment step, a critic that sees what the
+#: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines.
+RECIPES: dict[str, dict] = {
+    "paper": {},
+    "fast": {"updates_per_step": 0.25, "privileged_critic": True},
+}
+
+
 def sac_config(config) -> SACConfig:
-    """SACConfig with a `forcegrasp.config.Config`'s [learner.sac] overrides and its run seed; unknown
+    """SACConfig with a `forcegrasp.config.Config`'s recipe, its [learner.sac] overrides and its run seed; unknown
     or ill-typed keys are a ConfigError. The learner and the actors (n-step horizon, discount, critic
     inputs) read SAC settings through this one function."""
     import dataclasses
@@ -100,8 +109,9 @@ def sac_config(config) -> SACConfig:
         if key not in known:
             raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
         overrides[key] = tuple(value) if isinstance(value, list) else value
+    recipe = RECIPES[getattr(config.learner, "recipe", "paper")]
     try:
-        return dataclasses.replace(SACConfig(seed=config.run.seed), **overrides)
+        return dataclasses.replace(SACConfig(seed=config.run.seed), **{**recipe, **overrides})
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"learner.sac: {exc}") from None
 

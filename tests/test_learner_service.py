@@ -37,3 +37,19 @@ def test_actor_seeds_follow_run_seed(tmp_path):
     seeds = {s: [c[c.index("--seed") + 1] for name, c in service_commands(tmp_path / "c.toml", 2, seed=s).items()
                  if name.startswith("actor")] for s in (0, 7)}
     assert seeds == {0: ["1000", "2000"], 7: ["1007", "2007"]}
+
+
+def test_recipes_are_presets_under_the_overrides(tmp_path):
+    from forcegrasp.config import ConfigError
+    from forcegrasp.sac import SACConfig, sac_config
+
+    paper = sac_config(_config(tmp_path, "learner.recipe=paper"))
+    assert paper.updates_per_step == SACConfig().updates_per_step and not paper.privileged_critic
+    fast = sac_config(_config(tmp_path, "learner.recipe=fast", "learner.sac.batch_size=128"))
+    assert fast.updates_per_step == 0.25 and fast.privileged_critic and fast.batch_size == 128
+    mine = sac_config(_config(tmp_path, "learner.recipe=fast", "learner.sac.privileged_critic=false"))
+    assert not mine.privileged_critic  # an override beats the preset
+    import pytest
+
+    with pytest.raises(ConfigError):
+        _config(tmp_path, "learner.recipe=magic")
