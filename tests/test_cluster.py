@@ -48,6 +48,7 @@ class Cluster:
                 "learner.sac.hidden=[32, 32]",
                 "learner.sac.batch_size=32",
                 "learner.sac.num_threads=1",
+                "learner.recipe=paper",  # the rate-limit test below checks one update per step
             ]
         )
         self.config_path.write_text(config.to_toml())

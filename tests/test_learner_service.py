@@ -10,7 +10,7 @@ from forcegrasp.services.learner.learner import LearnerService
 
 def _config(tmp_path, *extra):
     return load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=r", "learner.sac.hidden=[8, 8]",
-                                  "learner.sac.buffer_size=1000", *extra])
+                                  "learner.sac.buffer_size=1000", "learner.recipe=paper", *extra])
 
 
 def _feed(service, n=32):
