@@ -109,7 +109,7 @@ def sac_config(config) -> SACConfig:
         if key not in known:
             raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
         overrides[key] = tuple(value) if isinstance(value, list) else value
-    recipe = RECIPES[getattr(config.learner, "recipe", "paper")]
+    recipe = RECIPES[config.learner.recipe]
     try:
         return dataclasses.replace(SACConfig(seed=config.run.seed), **{**recipe, **overrides})
     except (TypeError, ValueError) as exc:
