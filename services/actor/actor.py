@@ -4,7 +4,9 @@ transitions to the learner over Zenoh.
 - Acts uniformly at random for its first ``actor.random_steps`` env steps, then samples from the
   latest policy it has; one batched forward pass serves all its envs.
 - Publishes ``TransitionBatch`` messages (per-actor sequence numbers, the policy version it acted
-  with, episodes that ended) on ``forcegrasp/<run>/transitions/<actor>``.
+  with, episodes that ended) on ``forcegrasp/<run>/transitions/<actor>``; with the learner's
+  ``n_step`` > 1 they carry n-step returns and their horizons, with ``privileged_critic`` the
+  simulator state the critic sees (read from the same configuration as the learner).
 - Asks ``weights/latest`` at start, so a late joiner acts with current weights at once, then
   keeps the newest broadcast from ``weights``.
 - Pauses while the learner's published headroom is used up (the rate limiter that holds the
@@ -171,8 +173,8 @@ class ActorService:
 
     def _package(self) -> None:
         p = self._pending
-        obs, action, next_obs = np.array([t.obs for t in p]), np.array([t.action for t in p]), np.array([t.next_obs for t in p])
-        reward, term, trunc = np.array([t.reward for t in p]), np.array([t.terminated for t in p]), np.array([t.truncated for t in p])
+        obs, action, next_obs = (np.array([getattr(t, k) for t in p]) for k in ("obs", "action", "next_obs"))
+        reward, term, trunc = (np.array([getattr(t, k) for t in p]) for k in ("reward", "terminated", "truncated"))
         extras = {}
         if any(t.horizon != 1 for t in p):
             extras["horizon"] = np.array([t.horizon for t in p], np.int32)
