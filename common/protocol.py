@@ -334,6 +334,8 @@ class _Reader:
 
     def array(self, name: str, dtypes: frozenset, default: Any = _REQUIRED) -> np.ndarray | None:
         spec = self._get(name, default)
+        if spec is None and default is _REQUIRED:  # nil sent for a required array (found by fuzzing)
+            raise ProtocolError(R_FIELD, f"field {name!r} must be an array, got nil")
         return None if spec is None else decode_array(spec, name, dtypes, self.limits)
 
     def tree(self, name: str, leaf: Callable[[Any], bool], what: str, default: Any = _REQUIRED,
