@@ -47,11 +47,8 @@ def save_record(run_dir: Path, record: dict) -> None:
     os.replace(tmp, path)
 
 
-def _current_files(run_dir: Path) -> dict:
-    """The learner's latest snapshot and the evaluator's best right now, with their steps."""
-    from forcegrasp.policy_file import load_policy_file
-    from forcegrasp.rundir import RunDir
-
+def _current_files(run_dir: Path) -> dict[str, Path]:
+    """The learner's latest snapshot and the evaluator's best right now."""
     out = {}
     latest = RunDir(run_dir).latest_policy
     if latest.is_file():
@@ -62,23 +59,24 @@ def _current_files(run_dir: Path) -> dict:
         best = None
     if best is not None:
         out["best"] = best
-    steps = {}
-    for kind, path in out.items():
-        try:
-            steps[kind] = int(load_policy_file(path)[1].training_steps)
-        except Exception:  # a file replaced while we read it: skip this one, the next mark has it
-            steps[kind] = None
-    return {k: (v, steps[k]) for k, v in out.items()}
+    return out
 
 
 def take_mark(run_dir: Path, record: dict, minute: float, elapsed_s: float) -> dict:
-    """Freeze the current best and latest policy files as this mark's."""
+    """Freeze the current best and latest policy files as this mark's; the step recorded is the
+    frozen copy's own (the live files are replaced atomically, so a copy is one whole file)."""
+    from forcegrasp.policy_file import PolicyFileError, load_policy_file
+
     marks_dir = RunDir(run_dir).marks
     marks_dir.mkdir(exist_ok=True)
     mark = {"minute": minute, "elapsed_s": round(elapsed_s, 1), "files": {}, "steps": {}, "test": {}}
-    for kind, (path, step) in _current_files(run_dir).items():
+    for kind, path in _current_files(run_dir).items():
         dst = marks_dir / f"{kind}-{minute:05.1f}.safetensors"
-        shutil.copyfile(path, dst)
+        try:
+            shutil.copyfile(path, dst)
+            step = int(load_policy_file(dst)[1].training_steps)
+        except (OSError, PolicyFileError):  # the evaluator replaced its best meanwhile: the next mark has it
+            continue
         mark["files"][kind] = dst.name
         mark["steps"][kind] = step
     record["marks"] = [m for m in record["marks"] if m["minute"] != minute] + [mark]
