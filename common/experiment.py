@@ -214,20 +214,25 @@ def plot_records(records: list[dict], out: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = list(dict.fromkeys(r["label"] for r in records))
+    several_objects = len({r["object"] for r in records}) > 1
+
+    def group(r: dict) -> str:  # one colour per configuration (and object, when they differ)
+        return f"{r['label']} {r['object']}" if several_objects else r["label"]
+
+    labels = list(dict.fromkeys(group(r) for r in records))
     colours = {lab: plt.cm.tab10(i % 10) for i, lab in enumerate(labels)}
     markers = "osD^vP*X"
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), sharey=True)
     for r in records:
-        seeds = sorted({x["seed"] for x in records if x["label"] == r["label"]})
-        style = dict(color=colours[r["label"]], marker=markers[seeds.index(r["seed"]) % len(markers)], ms=4)
+        seeds = sorted({x["seed"] for x in records if group(x) == group(r)})
+        style = dict(color=colours[group(r)], marker=markers[seeds.index(r["seed"]) % len(markers)], ms=4)
         for kind, ls, lw in (("best", "-", 1.8), ("latest", ":", 1.0)):
             # x: the environment steps trained by the mark (the latest snapshot's), for both curves
             pts = [(m["minute"], m["steps"].get("latest"), m["test"][kind]["success_rate"]) for m in r["marks"]
                    if kind in m["test"]]
             if not pts:
                 continue
-            name = f"{r['label']} s{r['seed']}" if kind == "best" else None
+            name = f"{group(r)} s{r['seed']}" if kind == "best" else None
             axes[0].plot([p[0] for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, label=name, **style)
             axes[1].plot([p[1] or 0 for p in pts], [100 * p[2] for p in pts], ls=ls, lw=lw, **style)
     axes[0].set_xlabel("wall-clock minutes (2-core machine, evaluator beside training)")

@@ -72,7 +72,8 @@ class Harness:
         self.announce = declare_publisher(self.session, self.keys.checkpoints)
         self.latest: dict = {}
         self.log = tmp_path / "evaluator.log"
-        self.proc = start_evaluator(self.config_path, self.log, "--scan-every", "1000", "--stats-every", "0.3")
+        # --all: every checkpoint of the burst below is evaluated (the default follows the front)
+        self.proc = start_evaluator(self.config_path, self.log, "--scan-every", "1000", "--stats-every", "0.3", "--all")
 
     def publish(self, step: int, speed: float) -> None:
         path = write_checkpoint(self.config, step, policy_bytes(self.config, step, speed))
@@ -248,7 +249,7 @@ def test_kill9_at_any_moment_keeps_a_consistent_top_five(tmp_path):
     procs = []
 
     def launch(**env):
-        procs.append(start_evaluator(config_path, log, env=env))
+        procs.append(start_evaluator(config_path, log, "--all", env=env))
         return procs[-1]
 
     try:

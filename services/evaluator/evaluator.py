@@ -558,6 +558,9 @@ def main(argv=None) -> int:
     parser.add_argument("--no-mcap", action="store_true", help="do not write MCAP episode logs")
     parser.add_argument("--mcap-backend", choices=("auto", "sdk", "mcap"), default="auto",
                         help="MCAP writer: foxglove-sdk, the pure-Python mcap package, or auto (sdk if installed)")
+    parser.add_argument("--all", action="store_true",
+                        help="evaluate every checkpoint eval_every apart, oldest first, even when behind training "
+                             "(default: follow training's front, skipping the backlog)")
     parser.add_argument("--once", action="store_true",
                         help="evaluate the checkpoints already on disk (re-scoring the top k if the protocol changed), "
                              "print the top k and exit; no network (e.g. to score a finished run)")
@@ -572,7 +575,7 @@ def main(argv=None) -> int:
     stop = stop_on_signals()
     service = EvaluatorService(config, args.id, log_episodes=not args.no_mcap, scan_every=args.scan_every,
                                stats_every=args.stats_every, mcap_backend=args.mcap_backend,
-                               newest_first=not args.once)
+                               newest_first=not (args.once or args.all))
     ev = config.evaluator
     log.info("evaluator %s: run %s, %s, every %d steps on %d episodes, top %d ranked on %d episodes, checkpoints in %s",
              args.id, config.run.name, config.env.object, ev.eval_every, ev.eval_episodes, ev.top_k,
