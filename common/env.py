@@ -312,15 +312,11 @@ class FunctionalGraspEnv(gym.Env):
         out[0:2] = 100.0 * self.offset
         out[2:5] = 100.0 * (self._palm_pos - self._object_pos - self.label.goal_palm)
         out[5:8] = 100.0 * (self._object_pos - self.object_start)
-        n = d.ncon
-        if n:
-            g1, g2 = d.contact.geom1[:n], d.contact.geom2[:n]
-            on_object = np.isin(g1, ix.object_geoms) | np.isin(g2, ix.object_geoms)
-            if on_object.any():
-                other = np.where(np.isin(g1, ix.object_geoms), g2, g1)[on_object]
-                for k, geom in enumerate(self._fingertips):
-                    out[8 + k] = float((other == geom).any())
-                out[13] = float(np.isin(other, ix.hand_geoms).any())
+        other, _ = self._object_contacts(d)
+        if other.size:
+            for k, geom in enumerate(self._fingertips):
+                out[8 + k] = float((other == geom).any())
+            out[13] = float(np.isin(other, ix.hand_geoms).any())
         return out
 
     def goal_base_for_offset(self, offset) -> np.ndarray:
@@ -351,15 +347,21 @@ class FunctionalGraspEnv(gym.Env):
         d.ctrl[ix.hand_act] = self._J0
         mujoco.mj_forward(m, d)
 
-    def _overlap(self, d: mujoco.MjData) -> float:
-        """Deepest hand-object penetration among `d`'s contacts (m), 0 if none."""
+    def _object_contacts(self, d: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """The geoms touching the object in `d` and each contact's distance (negative: penetration)."""
         n = d.ncon
         if n == 0:
-            return 0.0
+            return np.empty(0, int), np.empty(0)
         g1, g2, dist = d.contact.geom1[:n], d.contact.geom2[:n], d.contact.dist[:n]
-        hand_object = (np.isin(g1, self.ix.hand_geoms) & np.isin(g2, self.ix.object_geoms)) | (
-            np.isin(g2, self.ix.hand_geoms) & np.isin(g1, self.ix.object_geoms))
-        return float(max(0.0, -dist[hand_object].min())) if hand_object.any() else 0.0
+        first = np.isin(g1, self.ix.object_geoms)
+        on_object = first | np.isin(g2, self.ix.object_geoms)
+        return np.where(first, g2, g1)[on_object], dist[on_object]
+
+    def _overlap(self, d: mujoco.MjData) -> float:
+        """Deepest hand-object penetration among `d`'s contacts (m), 0 if none."""
+        other, dist = self._object_contacts(d)
+        hand = np.isin(other, self.ix.hand_geoms)
+        return float(max(0.0, -dist[hand].min())) if hand.any() else 0.0
 
     def render(self):
         if self.render_mode != "rgb_array":
