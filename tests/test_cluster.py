@@ -57,6 +57,7 @@ class Cluster:
         self.stats_sub = QueueSubscriber(self.session, Keys(self.run).all_stats, maxsize=4096, put_timeout=0.0)
         self.latest: dict[str, dict] = {}
         self.history: dict[str, list[dict]] = {}
+        self.sent_at: dict[str, list[float]] = {}  # the sender's clock, beside each history entry
 
     def start(self, name: str) -> subprocess.Popen:
         module = "forcegrasp.services.learner" if name == "learner" else "forcegrasp.services.actor"
@@ -83,6 +84,12 @@ class Cluster:
             name = "learner" if s.service == "learner" else s.id
             self.latest[name] = s.values
             self.history.setdefault(name, []).append(s.values)
+            self.sent_at.setdefault(name, []).append(s.time)
+
+    def reports_since(self, name: str, t: float) -> list[dict]:
+        """The stats `name` sent after wall time `t`: tells a restarted process from reports of
+        its killed predecessor still in flight."""
+        return [v for v, at in zip(self.history.get(name, []), self.sent_at.get(name, [])) if at >= t]
 
     def wait_for(self, what: str, predicate, timeout: float = TIMEOUT):
         deadline = time.monotonic() + timeout
@@ -163,10 +170,10 @@ def test_actor_kill9_and_restart_rejoins_with_current_weights(cluster):
     cluster.kill9("actor-a")
     updates_at_kill = cluster.latest["learner"]["updates"]
     cluster.wait_for("the learner training on without actor-a", lambda s: s["learner"]["updates"] > updates_at_kill + 25)
-    cluster.history.pop("actor-a", None)
+    restarted_at = time.time()
     cluster.start("actor-a")
-    cluster.wait_for("actor-a back", lambda s: "actor-a" in s and s["actor-a"]["steps"] > 0)
-    first = cluster.history["actor-a"][0]
+    cluster.wait_for("actor-a back", lambda s: any(v["steps"] > 0 for v in cluster.reports_since("actor-a", restarted_at)))
+    first = cluster.reports_since("actor-a", restarted_at)[0]
     # Its very first report already carries a learner policy: it asked weights/latest at start.
     assert first["policy_version"] >= 1
     cluster.wait_for(
@@ -207,10 +214,10 @@ def test_learner_kill9_and_restart_resumes_from_checkpoint(cluster):
     s = cluster.wait_for("a checkpoint", lambda s: s["learner"]["last_checkpoint"] >= 600)
     cluster.kill9("learner")
     time.sleep(1.0)
-    cluster.history.pop("learner", None)
+    restarted_at = time.time()
     cluster.start("learner")
-    cluster.wait_for("the learner back", lambda s: "learner" in s)
-    first = cluster.history["learner"][0]
+    cluster.wait_for("the learner back", lambda s: cluster.reports_since("learner", restarted_at))
+    first = cluster.reports_since("learner", restarted_at)[0]
     checkpoint = first["last_checkpoint"]
     assert checkpoint >= 600
     assert first["ingested"] >= checkpoint and first["replay_size"] >= checkpoint  # counter and replay continue
