@@ -20,7 +20,7 @@ import numpy as np
 from forcegrasp.config import load_config
 from forcegrasp.policy import Actor, Policy, configure_threads
 from forcegrasp.runtime import policy_metadata
-from forcegrasp.services.actor.actor import ActorService
+from forcegrasp_actor.actor import ActorService
 
 
 def record(service: ActorService, iterations: int):

@@ -25,7 +25,7 @@ import numpy as np
 from forcegrasp.protocol import (Checkpoint, ProtocolError, Stats, TransitionBatch, Weights, decode_checkpoint,
                                  decode_stats, decode_transitions, decode_weights, encode_checkpoint, encode_stats,
                                  encode_transitions, encode_weights)
-from forcegrasp.services.evaluator.endpoint import BestPolicy, decode_best, encode_best
+from forcegrasp_evaluator.endpoint import BestPolicy, decode_best, encode_best
 
 
 def valid_messages() -> dict:

@@ -60,7 +60,7 @@ class Cluster:
         self.sent_at: dict[str, list[float]] = {}  # the sender's clock, beside each history entry
 
     def start(self, name: str) -> subprocess.Popen:
-        module = "forcegrasp.services.learner" if name == "learner" else "forcegrasp.services.actor"
+        module = "forcegrasp_learner" if name == "learner" else "forcegrasp_actor"
         cmd = [sys.executable, "-m", module, "--config", str(self.config_path)]
         if name != "learner":
             cmd += ["--id", name, "--seed", str(sum(name.encode()))]

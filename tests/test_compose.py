@@ -329,8 +329,8 @@ def test_copied_paths_exist_and_are_not_dockerignored():
         for src in sources:
             assert (REPO / src).exists(), f"COPY {src}: not in the repository"
     # what `pip install -e .` and the services need must reach the build context
-    for rel in ("pyproject.toml", "constraints.txt", "README.md", "common/config.py",
-                "services/actor/actor.py", "services/learner/learner.py", "assets/objects"):
+    for rel in ("pyproject.toml", "constraints.txt", "README.md", "common/forcegrasp/config.py",
+                "services/actor/forcegrasp_actor/actor.py", "services/learner/forcegrasp_learner/learner.py", "assets/objects"):
         assert (REPO / rel).exists() and not dockerignored(rel), f"{rel} is missing from the build context"
 
 

@@ -26,8 +26,8 @@ from forcegrasp.config import load_config
 from forcegrasp.policy_file import atomic_write, actor_param_shapes, load_policy_bytes, policy_to_bytes
 from forcegrasp.protocol import ProtocolError
 from forcegrasp.runtime import policy_metadata
-from forcegrasp.services.evaluator import topk
-from forcegrasp.services.evaluator.endpoint import (
+from forcegrasp_evaluator import topk
+from forcegrasp_evaluator.endpoint import (
     BestPolicy,
     EvaluatorHTTPServer,
     Snapshot,
@@ -37,7 +37,7 @@ from forcegrasp.services.evaluator.endpoint import (
     BestFetchError,
 )
 from forcegrasp.evaluation import EvalResult, evaluate, placements
-from forcegrasp.services.evaluator.evaluator import EvaluatorService
+from forcegrasp_evaluator.evaluator import EvaluatorService
 
 HIDDEN = (32, 32)
 
@@ -584,7 +584,7 @@ def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
 def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
     """Stored scores are only comparable on the same placements: if the way placements are drawn
     changes (here: every offset shifted, with the same config), a restart re-scores the members."""
-    import forcegrasp.services.evaluator.evaluator as evaluator_module
+    import forcegrasp_evaluator.evaluator as evaluator_module
 
     config = tiny_config(tmp_path)
     for s in (1000, 2000):
@@ -608,7 +608,7 @@ def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
 
 def test_once_scores_a_finished_run_and_exits(tmp_path, capsys):
     """`forcegrasp evaluator --once`: evaluate what is on disk, print the top k, exit (no network)."""
-    from forcegrasp.services.evaluator.evaluator import main
+    from forcegrasp_evaluator.evaluator import main
 
     config = tiny_config(tmp_path, **{"evaluator.top_k": 2})
     for i, s in enumerate((1000, 2000, 3000)):

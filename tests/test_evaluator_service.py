@@ -24,9 +24,9 @@ from pathlib import Path
 import pytest
 
 from forcegrasp.protocol import Checkpoint, Keys, decode_stats, encode_checkpoint
-from forcegrasp.services.evaluator import topk
-from forcegrasp.services.evaluator.endpoint import BestFetchError, decode_best, fetch_best_http, fetch_best_zenoh
-from forcegrasp.services.evaluator.evaluator import CRASH_ENV
+from forcegrasp_evaluator import topk
+from forcegrasp_evaluator.endpoint import BestFetchError, decode_best, fetch_best_http, fetch_best_zenoh
+from forcegrasp_evaluator.evaluator import CRASH_ENV
 from forcegrasp.transport import (
     QueueSubscriber,
     close_session,
@@ -42,7 +42,7 @@ TIMEOUT = 60.0
 
 
 def start_evaluator(config_path: Path, log: Path, *args: str, env: dict | None = None) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "forcegrasp.services.evaluator", "--config", str(config_path), *args]
+    cmd = [sys.executable, "-m", "forcegrasp_evaluator", "--config", str(config_path), *args]
     return subprocess.Popen(cmd, stdout=open(log, "ab"), stderr=subprocess.STDOUT,
                             env={**os.environ, **(env or {})})
 

@@ -3,7 +3,7 @@
 import json
 
 from forcegrasp.config import load_config
-from forcegrasp.experiment import RECORD, plot_records, run_experiment
+from forcegrasp.cli.experiment import RECORD, plot_records, run_experiment
 from forcegrasp.transport import free_tcp_port
 
 

@@ -8,7 +8,7 @@ import sys
 import time
 
 from forcegrasp.cli import SERVICES
-from forcegrasp.launcher import progress_line
+from forcegrasp.cli.up import progress_line
 from forcegrasp.transport import free_tcp_port
 
 

@@ -3,9 +3,9 @@
 import numpy as np
 
 from forcegrasp.config import load_config
-from forcegrasp.launcher import service_commands
+from forcegrasp.cli.up import service_commands
 from forcegrasp.protocol import Keys, TransitionBatch, encode_transitions
-from forcegrasp.services.learner.learner import LearnerService
+from forcegrasp_learner.learner import LearnerService
 
 
 def _config(tmp_path, *extra):

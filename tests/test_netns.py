@@ -68,7 +68,7 @@ def test_actor_on_another_host_joins_buffers_through_an_outage_and_catches_up(tm
                  "--set", f'network.connect=["tcp/{addr["learner"]}:{port}"]',
                  "--set", f'network.listen=["tcp/{addr["actor"]}:0"]'] + [a for c in common for a in ("--set", c)]
     learner = subprocess.Popen(
-        ["ip", "netns", "exec", hosts["learner"], sys.executable, "-m", "forcegrasp.services.learner",
+        ["ip", "netns", "exec", hosts["learner"], sys.executable, "-m", "forcegrasp_learner",
          "--config", str(tmp_path / "learner.toml")],
         stdout=open(tmp_path / "learner.log", "w"), stderr=subprocess.STDOUT,
     )

@@ -8,7 +8,7 @@ would show.
 
 from pathlib import Path
 
-from forcegrasp.online_check import offline_successes, online_successes, two_proportion_z
+from forcegrasp.cli.online_check import offline_successes, online_successes, two_proportion_z
 
 POLICY = Path(__file__).parent / "data" / "camera-screening-policy.safetensors"
 EPISODES = 150

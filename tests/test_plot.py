@@ -6,7 +6,7 @@ import matplotlib.image
 import pytest
 from torch.utils.tensorboard import SummaryWriter
 
-from forcegrasp.plot import main, read_evaluations, run_label
+from forcegrasp.cli.plot import main, read_evaluations, run_label
 
 
 def fake_run(root, name, force_feedback, success):

@@ -9,7 +9,7 @@ import pytest
 from forcegrasp.config import load_config
 from forcegrasp.env import FunctionalGraspEnv
 from forcegrasp.evaluation import placements
-from forcegrasp.policy_eval import main
+from forcegrasp.cli.policy_eval import main
 from forcegrasp.policy_file import actor_param_shapes, save_policy_file
 from forcegrasp.runtime import policy_metadata
 

@@ -100,7 +100,7 @@ def test_env_privileged_state_is_outside_the_observation():
 def test_service_written_policies_carry_the_env_action_scaling(tmp_path):
     """Issue 9's defect: a policy from the learner service says what its actions mean."""
     from forcegrasp.config import load_config
-    from forcegrasp.services.learner.learner import LearnerService
+    from forcegrasp_learner.learner import LearnerService
 
     config = load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=scale", "learner.sac.hidden=[8, 8]",
                                     "learner.sac.buffer_size=1000"])
@@ -162,7 +162,7 @@ def test_privileged_and_horizon_fields_are_validated_on_the_wire():
 def test_learner_counts_and_drops_bad_privileged_state(tmp_path):
     from forcegrasp.config import load_config
     from forcegrasp.protocol import Keys, encode_transitions
-    from forcegrasp.services.learner.learner import LearnerService
+    from forcegrasp_learner.learner import LearnerService
 
     config = load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=asym", "learner.sac.hidden=[8, 8]",
                                     "learner.sac.buffer_size=1000", "learner.sac.privileged_critic=true"])

@@ -34,7 +34,7 @@ def test_check_policy_names_the_mismatch():
 
 def test_protocol_policy_and_task_load_neither_mujoco_nor_gymnasium():
     code = ("import sys, forcegrasp.protocol, forcegrasp.policy, forcegrasp.task, forcegrasp.runtime, "
-            "forcegrasp.services.learner.learner\n"
+            "forcegrasp_learner.learner\n"
             "heavy = [m for m in ('mujoco', 'gymnasium') if m in sys.modules]\n"
             "assert not heavy, heavy")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -10,7 +10,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 __version__ = "0.1.0"
 
 #: Asset folder (objects, grasp labels): the repository's, or FORCEGRASP_ASSETS for a user's own set.
-ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve().parent.parent / "assets")
+ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve().parents[2] / "assets")
 
 
 # Gymnasium ids (FunctionalGrasp-<Object>-v0) are registered by `forcegrasp.env` when it is

@@ -74,7 +74,7 @@ def cmd_objects(args) -> int:
 
 def cmd_train(args) -> int:
     from forcegrasp.objects import ObjectFileError, load_object
-    from forcegrasp.train import Trainer, config_from_args
+    from forcegrasp.cli.train import Trainer, config_from_args
 
     try:
         load_object(args.object)
@@ -132,20 +132,20 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: Sub-commands that own their whole argument list (they take the shared --config/--set options).
 SERVICES = {
-    "up": ("forcegrasp.launcher", "start learner, actors and evaluator as local processes on loopback"),
-    "learner": ("forcegrasp.services.learner.learner", "run the SAC learner service"),
-    "actor": ("forcegrasp.services.actor.actor", "run one actor service (point it at a learner with --set)"),
-    "evaluator": ("forcegrasp.services.evaluator.evaluator", "run the evaluator service (top-k checkpoints, best policy)"),
+    "up": ("forcegrasp.cli.up", "start learner, actors and evaluator as local processes on loopback"),
+    "learner": ("forcegrasp_learner.learner", "run the SAC learner service"),
+    "actor": ("forcegrasp_actor.actor", "run one actor service (point it at a learner with --set)"),
+    "evaluator": ("forcegrasp_evaluator.evaluator", "run the evaluator service (top-k checkpoints, best policy)"),
 }
 
 #: Other sub-commands that own their argument list.
 TOOLS = {
-    "best": ("forcegrasp.services.evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
-    "replay": ("forcegrasp.replay_render", "render an evaluator episode log (.mcap) to an image strip or video"),
-    "plot": ("forcegrasp.plot", "training curves of one or several runs as one PNG"),
-    "experiment": ("forcegrasp.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
-    "online-check": ("forcegrasp.online_check", "does a frozen policy's online success match its offline tests?"),
-    "eval": ("forcegrasp.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
+    "best": ("forcegrasp_evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
+    "replay": ("forcegrasp.cli.replay", "render an evaluator episode log (.mcap) to an image strip or video"),
+    "plot": ("forcegrasp.cli.plot", "training curves of one or several runs as one PNG"),
+    "experiment": ("forcegrasp.cli.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
+    "online-check": ("forcegrasp.cli.online_check", "does a frozen policy's online success match its offline tests?"),
+    "eval": ("forcegrasp.cli.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
 }
 
 

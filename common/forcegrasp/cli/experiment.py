@@ -1,6 +1,6 @@
 """``forcegrasp experiment``: one training configuration for a wall-clock budget, scored at fixed marks.
 
-Runs the real cluster (`forcegrasp.launcher.up`: learner, actors, evaluator as processes, exactly
+Runs the real cluster (`forcegrasp.cli.up.up`: learner, actors, evaluator as processes, exactly
 what ``forcegrasp up`` runs) for ``--minutes`` of wall-clock. Every ``--mark-every`` minutes it
 freezes two policy files into ``<run>/marks/``:
 
@@ -151,7 +151,7 @@ def summary_lines(record: dict) -> list[str]:
 # ---------------------------------------------------------------------------------- running
 def run_experiment(config, minutes: float, mark_every: float, episodes: int, test_seed: int, label: str,
                    evaluator: bool = True, workers: int | None = None, log=print) -> dict:
-    from forcegrasp.launcher import up
+    from forcegrasp.cli.up import up
 
     run_dir = RunDir.of(config).root
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -39,7 +39,7 @@ from forcegrasp.config import Config, add_config_arguments, config_from_args
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
 from forcegrasp.task import check_policy
 from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
-from forcegrasp.services.evaluator.endpoint import (
+from forcegrasp_evaluator.endpoint import (
     BestPolicy,
     EvaluatorHTTPServer,
     Snapshot,
@@ -47,7 +47,7 @@ from forcegrasp.services.evaluator.endpoint import (
 )
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
 from forcegrasp.rundir import RunDir, policy_file_name, step_of
-from forcegrasp.services.evaluator.topk import MAX_POLICY_BYTES, Member, TopK, sha256
+from forcegrasp_evaluator.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
 

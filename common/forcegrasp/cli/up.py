@@ -26,12 +26,12 @@ GRACE_S = 20.0
 
 def service_commands(config_path: Path, num_actors: int, evaluator: bool = True, seed: int = 0) -> dict[str, list[str]]:
     py = [sys.executable, "-m"]
-    commands = {"learner": py + ["forcegrasp.services.learner", "--config", str(config_path)]}
+    commands = {"learner": py + ["forcegrasp_learner", "--config", str(config_path)]}
     for i in range(num_actors):
-        commands[f"actor-{i}"] = py + ["forcegrasp.services.actor", "--config", str(config_path), "--id", f"actor-{i}",
+        commands[f"actor-{i}"] = py + ["forcegrasp_actor", "--config", str(config_path), "--id", f"actor-{i}",
                                        "--seed", str(seed + 1000 * (i + 1))]
     if evaluator:
-        commands["evaluator"] = py + ["forcegrasp.services.evaluator", "--config", str(config_path)]
+        commands["evaluator"] = py + ["forcegrasp_evaluator", "--config", str(config_path)]
     return commands
 
 

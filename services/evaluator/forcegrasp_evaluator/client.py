@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     add_config_arguments(parser)
     args = parser.parse_args(argv)
     from forcegrasp.policy_file import atomic_write
-    from forcegrasp.services.evaluator.endpoint import BestFetchError, fetch_best_http
+    from forcegrasp_evaluator.endpoint import BestFetchError, fetch_best_http
 
     try:
         config = config_from_args(args)
@@ -54,7 +54,7 @@ def _run_was_given(args) -> bool:
 
 def _fetch_over_zenoh(config, timeout: float):
     from forcegrasp.runtime import open_service_session
-    from forcegrasp.services.evaluator.endpoint import BestFetchError, fetch_best_zenoh
+    from forcegrasp_evaluator.endpoint import BestFetchError, fetch_best_zenoh
     from forcegrasp.transport import close_session, wait_for_peers
 
     session = open_service_session(config, "client")

@@ -73,7 +73,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
         path = Path(tmp) / "actor.toml"
         path.write_text(config.to_toml())
         log_file = open(Path(tmp) / "actor.log", "wb")
-        proc = subprocess.Popen([sys.executable, "-m", "forcegrasp.services.actor", "--config", str(path),
+        proc = subprocess.Popen([sys.executable, "-m", "forcegrasp_actor", "--config", str(path),
                                  "--id", "check", "--seed", str(seed)], stdout=log_file, stderr=subprocess.STDOUT)
         try:
             deadline = time.monotonic() + timeout_s

@@ -1,3 +1,0 @@
-from forcegrasp.services.actor.actor import main
-
-raise SystemExit(main())

@@ -1,0 +1,3 @@
+from forcegrasp_actor.actor import main
+
+raise SystemExit(main())

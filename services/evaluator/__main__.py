@@ -1,3 +1,0 @@
-from forcegrasp.services.evaluator.evaluator import main
-
-raise SystemExit(main())

@@ -1,0 +1,3 @@
+from forcegrasp_evaluator.evaluator import main
+
+raise SystemExit(main())

@@ -1,3 +1,0 @@
-from forcegrasp.services.learner.learner import main
-
-raise SystemExit(main())

@@ -1,0 +1,3 @@
+from forcegrasp_learner.learner import main
+
+raise SystemExit(main())
