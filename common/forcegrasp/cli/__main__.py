@@ -1,0 +1,3 @@
+from forcegrasp.cli import main
+
+raise SystemExit(main())
