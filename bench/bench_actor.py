@@ -1,6 +1,6 @@
 """One actor process's env steps/s against the raw physics rate of its envs, side by side.
 
-The actor side is the service's own stepping code (``ActorService.step_all``): a batched
+The actor side is the service's own stepping code (``ActorService.step_all``: the actor role plus encoding): a batched
 forward pass of a real-size policy (77-256-256-14) for all its envs, the env steps, resets and
 the encoding of TransitionBatch messages. The raw side replays the control sequences those
 envs produced with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)`` per env, so
@@ -79,11 +79,11 @@ def main() -> None:
     for rep in range(args.reps):
         # A-B-B-A: the actor, the raw physics twice (same controls), the actor again.
         t_actor1, ctrls, resets = record(service, args.steps)
-        service.outbox.clear()
+        service.outbox.waiting.clear()
         t_raw = raw([env.model for env in service.envs], ctrls, resets, frame_skip)
         t_raw += raw([env.model for env in service.envs], ctrls, resets, frame_skip)
         t_actor2, _, _ = record(service, args.steps)
-        service.outbox.clear()
+        service.outbox.waiting.clear()
         total = 2 * args.steps * args.envs
         actor_rates.append(total / (t_actor1 + t_actor2))
         raw_rates.append(total / t_raw)

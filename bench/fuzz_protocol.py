@@ -22,10 +22,10 @@ import tracemalloc
 import msgpack
 import numpy as np
 
-from forcegrasp.protocol import (Checkpoint, ProtocolError, Stats, TransitionBatch, Weights, decode_checkpoint,
-                                 decode_stats, decode_transitions, decode_weights, encode_checkpoint, encode_stats,
-                                 encode_transitions, encode_weights)
-from forcegrasp_evaluator.endpoint import BestPolicy, decode_best, encode_best
+from forcegrasp.protocol import (Checkpoint, Progress, ProtocolError, Stats, TransitionBatch, Weights, decode_checkpoint,
+                                 decode_progress, decode_stats, decode_transitions, decode_weights, encode_checkpoint,
+                                 encode_progress, encode_stats, encode_transitions, encode_weights)
+from forcegrasp.protocol.best import BestPolicy, decode_best, encode_best
 
 
 def valid_messages() -> dict:
@@ -49,6 +49,7 @@ def valid_messages() -> dict:
                     lambda p: decode_weights(p, expected={"w": (4, 3)})),
         "stats": (encode_stats(Stats("learner", "0", {"a": 1.0, "b": {"c": 2}})), decode_stats),
         "checkpoint": (encode_checkpoint(Checkpoint(2000, "policy-000002000.safetensors", 3)), decode_checkpoint),
+        "progress": (encode_progress(Progress(500, 120, 33.0, {"actor-0": (9, 4)})), decode_progress),
         "best": (encode_best(best), decode_best),
     }
 

@@ -27,15 +27,8 @@ from forcegrasp.policy_file import atomic_write, actor_param_shapes, load_policy
 from forcegrasp.protocol import ProtocolError
 from forcegrasp.runtime import policy_metadata
 from forcegrasp_evaluator import topk
-from forcegrasp_evaluator.endpoint import (
-    BestPolicy,
-    EvaluatorHTTPServer,
-    Snapshot,
-    decode_best,
-    encode_best,
-    fetch_best_http,
-    BestFetchError,
-)
+from forcegrasp.protocol.best import BestPolicy, decode_best, encode_best
+from forcegrasp_evaluator.endpoint import BestFetchError, EvaluatorHTTPServer, Snapshot, fetch_best_http
 from forcegrasp.evaluation import EvalResult, evaluate, placements
 from forcegrasp_evaluator.evaluator import EvaluatorService
 

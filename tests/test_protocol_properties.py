@@ -17,11 +17,14 @@ from forcegrasp.protocol import (
     Stats,
     TransitionBatch,
     Weights,
+    Progress,
     decode_checkpoint,
+    decode_progress,
     decode_stats,
     decode_transitions,
     decode_weights,
     encode_checkpoint,
+    encode_progress,
     encode_stats,
     encode_transitions,
     encode_weights,
@@ -56,6 +59,7 @@ VALID = {
                 lambda p: decode_weights(p, expected={"w": (4, 3)})),
     "stats": (encode_stats(Stats("learner", "0", {"a": 1.0, "b": {"c": 2}})), decode_stats),
     "checkpoint": (encode_checkpoint(Checkpoint(2000, "policy-000002000.safetensors", 3)), decode_checkpoint),
+    "progress": (encode_progress(Progress(500, 120, 33.0, {"actor-0": (9, 4)})), decode_progress),
 }
 
 

@@ -125,7 +125,8 @@ def _batch(n=8, priv=None, horizon=None, obs_dim=77):
 
 
 def test_privileged_and_horizon_fields_are_validated_on_the_wire():
-    from forcegrasp.protocol import DEFAULT_LIMITS, ProtocolError, _pack, _unpack, decode_transitions, encode_transitions
+    from forcegrasp.protocol import DEFAULT_LIMITS, ProtocolError, decode_transitions, encode_transitions
+    from forcegrasp.protocol.wire import pack as _pack, unpack as _unpack
 
     good = _batch(priv=np.zeros((8, 14)), horizon=np.full(8, 3))
     back = decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=14)

@@ -39,12 +39,8 @@ from forcegrasp.config import Config, add_config_arguments, config_from_args
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
 from forcegrasp.task import check_policy
 from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
-from forcegrasp_evaluator.endpoint import (
-    BestPolicy,
-    EvaluatorHTTPServer,
-    Snapshot,
-    declare_best_queryable,
-)
+from forcegrasp.protocol.best import BestPolicy
+from forcegrasp_evaluator.endpoint import EvaluatorHTTPServer, Snapshot, declare_best_queryable
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
 from forcegrasp.rundir import RunDir, policy_file_name, step_of
 from forcegrasp_evaluator.topk import MAX_POLICY_BYTES, Member, TopK, sha256

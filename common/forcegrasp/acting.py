@@ -1,0 +1,125 @@
+"""The actor role: several FunctionalGrasp envs stepped with one copy of the policy, their
+transitions packed into batches for the learner. No network: the actor service sends the batches
+over Zenoh and feeds it the learner's broadcasts; ``forcegrasp train`` hands them to a learner in
+the same process.
+
+- Acts uniformly at random for its first ``actor.random_steps`` env steps (and until it has
+  weights), then samples from its policy; one batched forward pass serves all its envs.
+- Finished episodes reset at once; the transition keeps the true last observation, with
+  ``terminated`` marking real terminal states.
+- With the learner's ``n_step`` > 1 transitions leave through per-env n-step accumulators, with
+  ``privileged_critic`` they carry the simulator state the critic sees (read from the same
+  configuration as the learner).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from forcegrasp import task
+from forcegrasp.config import Config
+from forcegrasp.nstep import NStepAccumulator
+from forcegrasp.policy import Policy
+from forcegrasp.policy_file import PolicyMetadata
+from forcegrasp.protocol import TransitionBatch
+from forcegrasp.runtime import make_env
+from forcegrasp.sac import sac_config
+
+
+class Actor:
+    """Selects actions, observes what the envs return, takes new weights (:meth:`update`)."""
+
+    def __init__(self, config: Config, actor_id: str, seed: int | None = None):
+        self.config = config
+        self.actor_id = actor_id
+        n = config.actor.envs_per_actor
+        self.envs = [make_env(config) for _ in range(n)]
+        base_seed = config.run.seed + 1000 if seed is None else seed
+        self.rng = np.random.default_rng(base_seed)
+        self.obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
+        self.obs_dim, self.act_dim = self.obs.shape[1], task.ACT_DIM
+        sac = sac_config(config)  # the learner's n-step horizon, discount and critic inputs
+        self.privileged = bool(sac.privileged_critic)
+        self.priv = np.stack([env.privileged_state() for env in self.envs]) if self.privileged else None
+        self.nstep = [NStepAccumulator(sac.n_step, sac.gamma) for _ in self.envs]
+        self.policy: Policy | None = None
+        self.policy_version = 0
+        self.steps = 0
+        self.episodes = 0
+        self.successes = 0
+        self._pending: list = []
+        self._ended: list[tuple[float, int, bool]] = []
+        self._returns = np.zeros(n)
+        self._lengths = np.zeros(n, dtype=np.int64)
+
+    def update(self, params: dict[str, np.ndarray], meta: PolicyMetadata, version: int) -> bool:
+        """Swap in a newer policy; False for one older than ours. Raises ValueError for a policy
+        of another shape than this actor's envs."""
+        if meta.obs_dim != self.obs_dim or meta.act_dim != self.act_dim:
+            raise ValueError(f"policy is {meta.obs_dim}->{meta.act_dim}, env is {self.obs_dim}->{self.act_dim}")
+        if version <= self.policy_version and self.policy is not None:
+            return False  # an older broadcast overtaken by a query reply, say
+        self.policy = Policy.from_weights(params, meta, seed=int(self.rng.integers(2**31)))
+        self.policy_version = version
+        return True
+
+    def act(self) -> np.ndarray:
+        if self.steps < self.config.actor.random_steps or self.policy is None:
+            return self.rng.uniform(-1.0, 1.0, (len(self.envs), self.act_dim)).astype(np.float32)
+        return self.policy(self.obs, deterministic=False).astype(np.float32)
+
+    def step(self) -> TransitionBatch | None:
+        """One step of every env; returns a batch once ``actor.publish_batch`` transitions wait."""
+        actions = self.act()
+        for i, env in enumerate(self.envs):
+            next_obs, reward, terminated, truncated, info = env.step(actions[i])
+            next_priv = env.privileged_state() if self.privileged else None
+            priv = self.priv[i].copy() if self.privileged else None
+            self._pending.extend(self.nstep[i].push(self.obs[i].copy(), actions[i], reward, next_obs, terminated,
+                                                    truncated, priv, next_priv))
+            self._returns[i] += reward
+            self._lengths[i] += 1
+            if terminated or truncated:
+                self._ended.append((self._returns[i], int(self._lengths[i]), bool(info["success"])))
+                self.episodes += 1
+                self.successes += bool(info["success"])
+                self._returns[i], self._lengths[i] = 0.0, 0
+                next_obs, _ = env.reset()
+                if self.privileged:
+                    next_priv = env.privileged_state()
+            self.obs[i] = next_obs
+            if self.privileged:
+                self.priv[i] = next_priv
+        self.steps += len(self.envs)
+        if len(self._pending) >= self.config.actor.publish_batch:
+            return self._package()
+        return None
+
+    def _package(self) -> TransitionBatch:
+        """The waiting transitions and ended episodes as one batch (``seq``/``epoch`` are the
+        sender's to set)."""
+        p = self._pending
+        obs, action, next_obs = (np.array([getattr(t, k) for t in p]) for k in ("obs", "action", "next_obs"))
+        reward, term, trunc = (np.array([getattr(t, k) for t in p]) for k in ("reward", "terminated", "truncated"))
+        extras = {}
+        if any(t.horizon != 1 for t in p):
+            extras["horizon"] = np.array([t.horizon for t in p], np.int32)
+        if self.privileged:
+            extras["privileged"] = np.array([t.extra for t in p], np.float32)
+            extras["next_privileged"] = np.array([t.next_extra for t in p], np.float32)
+        if self._ended:
+            r, n, s = zip(*self._ended)
+            extras.update(episode_returns=np.array(r, np.float32), episode_lengths=np.array(n, np.int32),
+                          episode_successes=np.array(s, bool))
+        self._pending, self._ended = [], []
+        return TransitionBatch(actor_id=self.actor_id, seq=0, policy_version=self.policy_version, obs=obs,
+                               action=action, reward=reward, next_obs=next_obs, terminated=term, truncated=trunc,
+                               **extras)
+
+    def stats(self) -> dict:
+        return {"steps": self.steps, "episodes": self.episodes, "successes": self.successes,
+                "policy_version": self.policy_version}
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()

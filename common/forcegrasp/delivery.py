@@ -1,0 +1,156 @@
+"""Delivery of transitions from actors to the learner: the sender's and the receiver's rules in one
+place, so the guarantee can be read (and tested) as a whole.
+
+- Every actor process numbers its batches: ``epoch`` is random per process start, ``seq`` counts
+  from 0. The learner's :class:`Streams` reads them per actor: a new epoch is a restarted process,
+  ``seq`` at or below the last one a resend (dropped, counted as a duplicate), a jump a gap
+  (counted: batches lost for good).
+- The actor's :class:`Outbox` keeps every batch until the learner acknowledges it (the
+  ``acked`` map of its progress message). While no learner listens, batches wait in a bounded
+  outbox (oldest dropped first, counted); when a learner appears again, everything sent but not
+  acknowledged goes again, first. An outage therefore loses nothing that fits the bound, and the
+  learner's duplicate check makes the resend harmless.
+- Flow control: the progress message also carries the learner's *headroom* (how many more
+  transitions it takes before it owes too many updates). The actor pauses while the headroom,
+  less what it sent since that word, is used up; a learner that is gone releases it.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import time
+from typing import Callable
+
+from forcegrasp.protocol import Progress, TransitionBatch
+
+
+# --------------------------------------------------------------------------------------------
+# Sender side (actors)
+# --------------------------------------------------------------------------------------------
+
+class Outbox:
+    """One actor's batches on their way to the learner (encoded payloads, with their seq)."""
+
+    def __init__(self, actor_id: str, epoch: int, max_batches: int):
+        self.actor_id, self.epoch, self.max_batches = actor_id, epoch, max_batches
+        self.waiting: collections.deque[tuple[int, bytes, int]] = collections.deque()  # (seq, payload, n)
+        self.unacked: collections.deque[tuple[int, bytes, int]] = collections.deque()  # sent, not yet ingested
+        self.sent_batches = 0
+        self.resent_batches = 0
+        self.dropped_batches = 0
+        self._headroom: float | None = None
+        self._sent_since_progress = 0
+        self._was_present = False
+
+    def put(self, seq: int, payload: bytes, n: int) -> None:
+        """Queue a batch of ``n`` transitions; past the bound the oldest unsent-or-unacked goes."""
+        self.waiting.append((seq, payload, n))
+        while len(self.waiting) + len(self.unacked) > self.max_batches:
+            (self.unacked or self.waiting).popleft()
+            self.dropped_batches += 1
+
+    def on_progress(self, progress: Progress) -> None:
+        """The learner's latest word: its headroom, and which of our batches it has ingested."""
+        self._headroom = progress.headroom
+        self._sent_since_progress = 0
+        acked = progress.acked.get(self.actor_id)
+        if acked is not None and acked[0] == self.epoch:
+            while self.unacked and self.unacked[0][0] <= acked[1]:
+                self.unacked.popleft()
+
+    def must_wait(self, learner_present: bool) -> bool:
+        """True while a live learner says the actors are ahead of its update-to-data ratio.
+
+        A learner busy in a long step sends no news but is still there (its subscriber still
+        matches): its last word holds. A learner that is gone releases the actor, which then
+        fills its bounded outbox.
+        """
+        if self._headroom is None or not learner_present:
+            return False
+        return self._headroom - self._sent_since_progress <= 0
+
+    def flush(self, learner_present: bool, put: Callable[[bytes], None]) -> None:
+        """Send what waits, if a learner listens; after an outage, the unacknowledged go first."""
+        if learner_present and not self._was_present and self.unacked:
+            self.resent_batches += len(self.unacked)
+            self.waiting.extendleft(reversed(self.unacked))
+            self.unacked.clear()
+        self._was_present = learner_present
+        while learner_present and self.waiting:
+            item = self.waiting.popleft()
+            put(item[1])
+            self.unacked.append(item)
+            self.sent_batches += 1
+            self._sent_since_progress += item[2]
+
+    def stats(self) -> dict:
+        return {"sent_batches": self.sent_batches, "buffered_batches": len(self.waiting),
+                "unacked_batches": len(self.unacked), "resent_batches": self.resent_batches,
+                "dropped_batches": self.dropped_batches}
+
+
+# --------------------------------------------------------------------------------------------
+# Receiver side (the learner)
+# --------------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class Stream:
+    """What the learner knows about one actor's stream."""
+
+    last_seq: int = -1
+    epoch: int | None = None
+    restarts: int = 0
+    duplicates: int = 0
+    ingested: int = 0
+    gaps: int = 0
+    staleness_sum: float = 0.0
+    batches: int = 0
+    rate_mark: tuple[float, int] = (0.0, 0)
+
+
+class Streams:
+    """Every actor's stream as the learner sees it: restarts, resends and losses told apart."""
+
+    def __init__(self) -> None:
+        self.by_actor: dict[str, Stream] = collections.defaultdict(Stream)
+
+    def admit(self, batch: TransitionBatch, policy_version: int) -> bool:
+        """Whether ``batch`` is new data (False: a resend already in replay). Counts gaps,
+        restarts, and how many policy versions behind the learner the actor acted."""
+        s = self.by_actor[batch.actor_id]
+        if batch.epoch != s.epoch:  # first contact, or a restarted actor counting from 0 again
+            if s.epoch is not None:
+                s.restarts += 1
+            s.epoch, s.last_seq = batch.epoch, batch.seq - 1
+        if batch.seq <= s.last_seq:
+            s.duplicates += 1
+            return False
+        if batch.seq > s.last_seq + 1:
+            s.gaps += batch.seq - s.last_seq - 1
+        s.last_seq = batch.seq
+        s.batches += 1
+        s.ingested += batch.n
+        s.staleness_sum += policy_version - batch.policy_version
+        return True
+
+    def acked(self) -> dict[str, tuple[int, int]]:
+        """Per actor, the (epoch, seq) of the last batch admitted: the progress message's acks."""
+        return {a: (s.epoch, s.last_seq) for a, s in self.by_actor.items() if s.epoch is not None}
+
+    @property
+    def gaps(self) -> int:
+        return sum(s.gaps for s in self.by_actor.values())
+
+    def stats(self) -> dict[str, dict]:
+        """Per-actor counters, and each actor's ingest rate since the previous call."""
+        now = time.monotonic()
+        out = {}
+        for actor_id, s in self.by_actor.items():
+            t_prev, n_prev = s.rate_mark
+            rate = (s.ingested - n_prev) / (now - t_prev) if t_prev else 0.0
+            s.rate_mark = (now, s.ingested)
+            out[actor_id] = {"ingested": s.ingested, "per_s": rate, "last_seq": s.last_seq, "gaps": s.gaps,
+                             "restarts": s.restarts, "duplicates": s.duplicates,
+                             "staleness": s.staleness_sum / s.batches if s.batches else 0.0}
+        return out
