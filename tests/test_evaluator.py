@@ -26,7 +26,7 @@ from forcegrasp.config import load_config
 from forcegrasp.policy_file import atomic_write, actor_param_shapes, load_policy_bytes, policy_to_bytes
 from forcegrasp.protocol import ProtocolError
 from forcegrasp.runtime import policy_metadata
-from forcegrasp_evaluator import topk
+from forcegrasp import topk
 from forcegrasp.protocol.best import BestPolicy, decode_best, encode_best
 from forcegrasp_evaluator.endpoint import BestFetchError, EvaluatorHTTPServer, Snapshot, fetch_best_http
 from forcegrasp.evaluation import EvalResult, evaluate, placements
@@ -577,7 +577,7 @@ def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
 def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
     """Stored scores are only comparable on the same placements: if the way placements are drawn
     changes (here: every offset shifted, with the same config), a restart re-scores the members."""
-    import forcegrasp_evaluator.evaluator as evaluator_module
+    import forcegrasp.ranking as ranking_module
 
     config = tiny_config(tmp_path)
     for s in (1000, 2000):
@@ -590,9 +590,9 @@ def test_changed_placements_rescore_the_top_k(tmp_path, monkeypatch):
     with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
         service.load()  # same placements: the stored scores stand
         assert service.counters.rank_evaluations == 0
-    original = evaluator_module.placements
+    original = ranking_module.placements
     shifted = lambda *a, **k: [dataclasses.replace(p, offset=(p.offset[0] * 0.5, p.offset[1])) for p in original(*a, **k)]
-    monkeypatch.setattr(evaluator_module, "placements", shifted)
+    monkeypatch.setattr(ranking_module, "placements", shifted)
     with EvaluatorService(config, score_fn=fake_score, log_episodes=False) as service:
         service.load()
         assert service.counters.rank_evaluations == 2  # both members scored again

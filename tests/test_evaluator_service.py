@@ -24,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from forcegrasp.protocol import Checkpoint, Keys, decode_stats, encode_checkpoint
-from forcegrasp_evaluator import topk
+from forcegrasp import topk
 from forcegrasp.protocol.best import decode_best
 from forcegrasp_evaluator.endpoint import BestFetchError, fetch_best_http, fetch_best_zenoh
 from forcegrasp_evaluator.evaluator import CRASH_ENV

@@ -1,6 +1,6 @@
-"""Evaluator service: follows the learner's checkpoints, scores them on fixed placements, keeps the
-top k on disk, re-ranks them on the final-ranking placements, logs every episode to MCAP and
-serves the best policy (Zenoh queryable and read-only HTTP).
+"""Evaluator service: the evaluator role (:class:`forcegrasp.ranking.Ranker`: score snapshots, keep
+the top k, re-rank newcomers, log episodes to MCAP) wired to the learner's announcements, with the
+best policy served as a Zenoh queryable and over read-only HTTP.
 
 - Checkpoints are found two ways: announcements on ``forcegrasp/<run>/checkpoints`` and a scan
   of ``<output_dir>/<run>/checkpoints/`` at start and every ``--scan-every`` seconds, so a
@@ -20,165 +20,52 @@ serves the best policy (Zenoh queryable and read-only HTTP).
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import fcntl
-import hashlib
 import json
 import logging
 import os
 import queue
-import shutil
 import signal
 import threading
 import time
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Callable
 
 from forcegrasp.config import Config, add_config_arguments, config_from_args
-from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
-from forcegrasp.task import check_policy
+from forcegrasp.evaluation import EvalResult
 from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
 from forcegrasp.protocol.best import BestPolicy
+from forcegrasp.ranking import Ranker, ScoreFn
+from forcegrasp.rundir import step_of
 from forcegrasp_evaluator.endpoint import EvaluatorHTTPServer, Snapshot, declare_best_queryable
-from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
-from forcegrasp.rundir import RunDir, policy_file_name, step_of
-from forcegrasp_evaluator.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
 
-#: ``score_fn(policy, weights, metadata, placements, kind, step) -> EvalResult``; kind is "eval" or "rank".
-ScoreFn = Callable[..., EvalResult]
+class EvaluatorService(Ranker):
+    """The evaluator role plus announcements, the best-policy endpoints, stats and TensorBoard."""
 
-
-class CheckpointRejected(Exception):
-    """A checkpoint file that cannot be evaluated (corrupt, other task, other architecture)."""
-
-
-@dataclass
-class Counters:
-    evaluations: int = 0
-    rank_evaluations: int = 0
-    episodes: int = 0
-    episode_seconds: float = 0.0
-    entered_top: int = 0
-    skipped: int = 0
-    bad_checkpoints: int = 0
-    missing_files: int = 0
-    queries: int = 0
-    bad_queries: int = 0
-    pruned_logs: int = 0
-
-
-class EvaluatorService:
     def __init__(self, config: Config, instance: str = "0", *, score_fn: ScoreFn | None = None,
                  log_episodes: bool = True, scan_every: float = 10.0, stats_every: float = 2.0,
                  mcap_backend: str = "auto", newest_first: bool = True):
-        self.config = config
-        self.newest_first = newest_first
+        super().__init__(config, score_fn=score_fn, log_episodes=log_episodes, mcap_backend=mcap_backend,
+                         newest_first=newest_first)
         self.instance = instance
         self.keys = Keys(config.run.name)
-        self.files = RunDir.of(config)
-        self.run_dir = self.files.root
-        self.checkpoint_dir = self.files.checkpoints
-        self.dir = self.files.evaluator
-        self.episodes_dir = self.files.episodes
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self._lock_file = self._take_lock()
-        ev = config.evaluator
-        self.env = None
-        clear = self._ensure_env().is_clear
-        self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval", clear)
-        self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank", clear)
-        self.top = TopK(self.files.top, ev.top_k, run=config.run.name)
         self.top.crash_hook = _crash_hook_from_env()
-        self.log_episodes = log_episodes
-        self.mcap_backend = mcap_backend
         self.scan_every = scan_every
         self.stats_every = stats_every
-        self._score_fn = score_fn or self._rollouts
-        self.counters = Counters()
         self.rejects = RejectCounter()
-        self.pending: dict[int, Path] = {}
-        self.failed: set[int] = set()
         self.announcements: queue.Queue = queue.Queue(maxsize=4096)
         self.snapshot = Snapshot.build(config.run.name, None, self.top.to_json(with_history=False))
         self.http: EvaluatorHTTPServer | None = None
-        self.current: int | None = None
-        self._stop = threading.Event()
         self._t0 = self._last_scan = time.monotonic()
         self.writer = None  # TensorBoard, opened by run(): the evaluator's figures beside the learner's
-        self.last_result: tuple[int, EvalResult] | None = None
 
-    # ------------------------------------------------------------------ start-up
-    def _take_lock(self):
-        """One evaluator per run folder: a second one would interleave writes to the same top k.
-        ``flock`` is released by the kernel when the process dies, even by SIGKILL."""
-        f = open(self.dir / "lock", "a+")
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.close()
-            raise SystemExit(f"error: another evaluator is running for run {self.config.run.name!r} "
-                             f"(it holds {self.dir / 'lock'})") from None
-        f.seek(0)
-        f.truncate()
-        f.write(f"{os.getpid()}\n")
-        f.flush()
-        return f
-
-    def close(self) -> None:
-        """Release the run's evaluator lock (also released by the kernel when the process dies)."""
-        if self._lock_file is not None and not self._lock_file.closed:
-            self._lock_file.close()
-        if self.env is not None:
-            self.env.close()
-
-    def __enter__(self) -> "EvaluatorService":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def protocol(self) -> dict:
-        """What a score depends on besides the policy: a change invalidates stored scores."""
-        e, ev = self.config.env, self.config.evaluator
-        return {"object": e.object, "force_feedback": e.force_feedback, "mass_scale": e.mass_scale,
-                "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
-                "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
-                "final_rank_episodes": ev.final_rank_episodes,
-                # the placements themselves: a change in how they are drawn (e.g. which offsets
-                # are clear of the hand) invalidates scores as surely as a changed setting
-                "placements": hashlib.sha256(json.dumps(
-                    [[p.seed, *p.offset] for p in self.eval_places + self.rank_places]).encode()).hexdigest()[:16]}
+    def on_commit(self, step, result) -> None:
+        self.refresh_snapshot()
+        if step is not None:
+            self._log_scalars(step, result)
 
     def load(self) -> None:
-        """Reload the top k (verifying every file), re-score it if the protocol changed, scan."""
-        if self.top.load(self.protocol()):
-            log.warning("evaluation settings changed since the top k was scored: re-scoring its %d members",
-                        len(self.top.members))
-            self._rescore_members()
-        self.refresh_snapshot()
-        best = self.top.best
         self._last_scan = time.monotonic()
-        log.info("top %d: %d members, best %s, last evaluated step %s", self.top.k, len(self.top.members),
-                 f"{best.file} ({best.rank_score:.2f})" if best else "none", self.top.last_step)
-        self.scan()
-
-    # ------------------------------------------------------------------ finding checkpoints
-    def scan(self) -> int:
-        """Add every ``policy-<step>.safetensors`` of the checkpoints folder not evaluated yet."""
-        found = 0
-        try:
-            entries = list(os.scandir(self.checkpoint_dir))
-        except FileNotFoundError:
-            return 0
-        for entry in entries:
-            step = step_of(entry.name)
-            if step is not None and self._wanted(step) and step not in self.pending:
-                self.pending[step] = Path(entry.path)
-                found += 1
-        return found
+        super().load()
 
     def on_announcement(self, payload: bytes) -> None:
         """Zenoh callback: only a queue put (decoding happens in the service loop)."""
@@ -217,165 +104,6 @@ class EvaluatorService:
                 log.warning("announced checkpoint %s is not in %s (does this evaluator share the learner's "
                             "output_dir?); the next scan will pick it up if it appears", name, self.checkpoint_dir)
 
-    def _wanted(self, step: int) -> bool:
-        last = self.top.last_step
-        return step not in self.failed and (last is None or step >= last + self.config.evaluator.eval_every)
-
-    def next_checkpoint(self) -> tuple[int, Path] | None:
-        """The next pending checkpoint far enough after the last evaluated one.
-
-        Newest first (the service): an evaluator slower than training follows its front and skips
-        what it cannot keep up with, instead of working through a growing backlog of stale
-        checkpoints while it serves an old best. Oldest first (``--once``, scoring a finished
-        run): every checkpoint ``eval_every`` apart is evaluated.
-        """
-        order = sorted(self.pending, reverse=self.newest_first)
-        chosen = None
-        for step in order:
-            if chosen is not None and self.newest_first:
-                del self.pending[step]  # older than the one chosen: it would never be wanted
-                self.counters.skipped += 1
-                continue
-            if chosen is not None:
-                break
-            path = self.pending.pop(step)
-            if self._wanted(step):
-                chosen = (step, path)
-            else:
-                self.counters.skipped += 1
-        return chosen
-
-    # ------------------------------------------------------------------ evaluating
-    def _ensure_env(self):
-        if self.env is None:
-            from forcegrasp.runtime import make_env
-
-            self.env = make_env(self.config)
-        return self.env
-
-    def _rollouts(self, policy, weights, meta: PolicyMetadata, places: list[Placement], kind: str,
-                  step: int) -> EvalResult:
-        env = self._ensure_env()
-        log_dir = None
-        if self.log_episodes:
-            log_dir = self.episodes_dir / f"{step:09d}"
-            log_dir.mkdir(parents=True, exist_ok=True)
-            for leftover in log_dir.glob(f".{kind}-*.tmp"):
-                leftover.unlink(missing_ok=True)
-        meta_fields = {"run": self.config.run.name, "checkpoint_step": step, "policy_version":
-                       meta.extra.get("policy_version", 0), "checkpoint": policy_file_name(step)}
-
-        def counted(_result) -> None:
-            self.counters.episodes += 1
-
-        return evaluate(env, policy, places, log_dir=log_dir, log_prefix=kind, log_metadata=meta_fields,
-                        should_stop=self._stop.is_set, on_episode=counted, logger_backend=self.mcap_backend)
-
-    def _check(self, data: bytes, source: str):
-        """Parse and check a checkpoint against this run's task; returns (weights, metadata)."""
-        try:
-            weights, meta = load_policy_bytes(data, source=source)
-        except PolicyFileError as exc:
-            raise CheckpointRejected(str(exc)) from None
-        env = self.config.env
-        try:
-            check_policy(meta, env.object, env.force_feedback)
-        except ValueError as exc:
-            raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback})") from None
-        return weights, meta
-
-    def _policy(self, weights, meta):
-        from forcegrasp.policy import Policy
-
-        return Policy.from_weights(weights, meta, seed=0)
-
-    def process(self, step: int, path: Path) -> Member | None:
-        """Evaluate one checkpoint and update the top k; returns its Member if it entered."""
-        self.current = step
-        try:
-            try:
-                size = path.stat().st_size
-                if size > MAX_POLICY_BYTES:
-                    raise CheckpointRejected(f"{path}: {size} bytes is more than any policy file")
-                data = path.read_bytes()
-            except FileNotFoundError:
-                log.warning("checkpoint %s vanished before it was evaluated", path)
-                self.counters.missing_files += 1
-                return None
-            except OSError as exc:
-                raise CheckpointRejected(f"{path}: cannot read: {exc}") from None
-            weights, meta = self._check(data, str(path))
-            policy = self._policy(weights, meta)
-            t0 = time.perf_counter()
-            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", step)
-            self.counters.episode_seconds += time.perf_counter() - t0
-            log.info("step %d: score %.2f, success %.0f%% over %d episodes (%.1f s)", step, result.score,
-                     100 * result.success_rate, result.episodes, time.perf_counter() - t0)
-            self.top.record(step, result.score, result.success_rate, result.episodes)
-            self.last_result = (step, result)
-            member = None
-            if self.top.would_enter(result.score, step):
-                member, blob = self._rank(step, weights, meta, policy, result)
-                evicted = self.top.admit(member, blob)
-                self.counters.entered_top += 1
-                log.info("step %d enters the top %d (rank score %.2f)%s; best is now %s", step, self.top.k,
-                         member.rank_score, f", {', '.join(m.file for m in evicted)} leaves" if evicted else "",
-                         self.top.best.file)
-            self.top.commit()
-            self.refresh_snapshot()
-            self._log_scalars(step, result)
-            self._prune_episode_logs(latest=step)
-            self.counters.evaluations += 1  # counted once on disk: stats never run ahead of the index
-            return member
-        except CheckpointRejected as exc:
-            self.failed.add(step)
-            self.counters.bad_checkpoints += 1
-            log.error("checkpoint %d rejected: %s", step, exc)
-            return None
-        finally:
-            self.current = None
-
-    def _prune_episode_logs(self, latest: int) -> None:
-        """With ``keep_episode_logs = "top"``, delete the MCAP logs of checkpoints that are neither
-        in the top k nor the latest evaluated: at paper settings each costs ~16 MB, 8 GB per 1 M steps."""
-        if self.config.evaluator.keep_episode_logs != "top" or not self.episodes_dir.is_dir():
-            return
-        keep = {m.step for m in self.top.members} | {latest}
-        for folder in self.episodes_dir.iterdir():
-            if folder.is_dir() and folder.name.isdigit() and int(folder.name) not in keep:
-                shutil.rmtree(folder, ignore_errors=True)
-                self.counters.pruned_logs += 1
-
-    def _rank(self, step: int, weights, meta: PolicyMetadata, policy, result: EvalResult) -> tuple[Member, bytes]:
-        """Score a top-k newcomer on the ranking placements; its file carries the scores."""
-        t0 = time.perf_counter()
-        rank = self._score_fn(policy, weights, meta, self.rank_places, "rank", step)
-        self.counters.rank_evaluations += 1
-        self.counters.episode_seconds += time.perf_counter() - t0
-        meta = dataclasses.replace(meta, eval_score=rank.score, extra={**meta.extra, "evaluation": {
-            "step": step, "rank_score": rank.score, "rank_success_rate": rank.success_rate,
-            "rank_episodes": rank.episodes, "eval_score": result.score, "eval_success_rate": result.success_rate,
-            "eval_episodes": result.episodes, "run": self.config.run.name}})
-        blob = policy_to_bytes(weights, meta)
-        member = Member(
-            file=policy_file_name(step), step=step, score=result.score, success_rate=result.success_rate,
-            episodes=result.episodes, rank_score=rank.score, rank_success_rate=rank.success_rate,
-            rank_episodes=rank.episodes, sha256=sha256(blob), size=len(blob), object=meta.object_name or
-            self.config.env.object, force_feedback=meta.force_feedback,
-            policy_version=int(meta.extra.get("policy_version", 0) or 0), evaluated_at=time.time())
-        return member, blob
-
-    def _rescore_members(self) -> None:
-        for old in list(self.top.members):
-            data = self.top.read_policy(old)
-            weights, meta = load_policy_bytes(data)
-            meta.extra = {k: v for k, v in meta.extra.items() if k != "evaluation"}
-            policy = self._policy(weights, meta)
-            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", old.step)
-            member, blob = self._rank(old.step, weights, meta, policy, result)
-            self.top.replace(member, blob)
-        self.top.commit()
-
     def poll_once(self) -> bool:
         """One turn of the service loop: take announcements, scan, evaluate the next checkpoint.
         Returns whether a checkpoint was processed."""
@@ -386,18 +114,7 @@ class EvaluatorService:
         if self.pending or time.monotonic() - self._last_scan >= self.scan_every:
             self.scan()
             self._last_scan = time.monotonic()
-        nxt = self.next_checkpoint()
-        if nxt is None:
-            return False
-        try:
-            self.process(*nxt)
-        except Interrupted:
-            log.info("stopping: evaluation of step %d abandoned (redone after a restart)", nxt[0])
-        except Exception:  # a bug or a full disk must not take the endpoint down with it
-            log.exception("evaluating step %d failed; skipping it", nxt[0])
-            self.failed.add(nxt[0])
-            self.counters.bad_checkpoints += 1
-        return True
+        return self.evaluate_next()
 
     # ------------------------------------------------------------------ serving
     def refresh_snapshot(self) -> None:
