@@ -41,7 +41,8 @@ def test_actor_seeds_follow_run_seed(tmp_path):
 
 def test_recipes_are_presets_under_the_overrides(tmp_path):
     from forcegrasp.config import ConfigError
-    from forcegrasp.sac import SACConfig, sac_config
+    from forcegrasp.recipes import sac_config
+    from forcegrasp.sac import SACConfig
 
     paper = sac_config(_config(tmp_path, "learner.recipe=paper"))
     assert paper.updates_per_step == SACConfig().updates_per_step and not paper.privileged_critic

@@ -15,11 +15,50 @@ gym = pytest.importorskip("gymnasium")
 from gymnasium.wrappers import RescaleAction  # noqa: E402
 
 from forcegrasp.policy import Actor, Policy  # noqa: E402
-from forcegrasp.sac import SACConfig, train  # noqa: E402
+from forcegrasp.replay import ReplayBuffer  # noqa: E402
+from forcegrasp.sac import SAC, SACConfig  # noqa: E402
 
 
 def pendulum():
     return RescaleAction(gym.make("Pendulum-v1"), np.float32(-1.0), np.float32(1.0))
+
+
+def train(env, config: SACConfig | None = None, on_episode=None) -> SAC:
+    """The textbook SAC loop around forcegrasp.sac.SAC on one Gymnasium env with a Box(-1, 1)
+    action space: a check of the SAC core alone, with none of ForceGrasp's task or services."""
+    cfg = config or SACConfig()
+    space = env.action_space
+    if not (np.allclose(space.low, -1.0) and np.allclose(space.high, 1.0)):
+        raise ValueError(f"action space must be [-1, 1] (got {space}); wrap the env with RescaleAction(env, -1, 1)")
+    obs_dim, act_dim = env.observation_space.shape[0], space.shape[0]
+    sac = SAC(obs_dim, act_dim, cfg)
+    buffer = ReplayBuffer(obs_dim, act_dim, min(cfg.buffer_size, cfg.total_steps))
+    rng = np.random.default_rng(cfg.seed)
+
+    obs, _ = env.reset(seed=cfg.seed)
+    episode_return, updates_due = 0.0, 0.0
+    for step in range(cfg.total_steps):
+        if step < cfg.learning_starts:  # pure exploration fills the buffer first
+            action = rng.uniform(-1.0, 1.0, act_dim).astype(np.float32)
+        else:
+            action = sac.act(obs)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        # Store the real next observation; only true termination stops bootstrapping.
+        buffer.add(obs, action, reward, next_obs, float(terminated))
+        episode_return += float(reward)
+        obs = next_obs
+        if terminated or truncated:
+            if on_episode is not None:
+                on_episode(step + 1, episode_return)
+            obs, _ = env.reset()
+            episode_return = 0.0
+
+        if step + 1 >= cfg.learning_starts:  # fractional UTD ratios accumulate across steps
+            updates_due += cfg.updates_per_step
+            while updates_due >= 1.0:
+                sac.update(buffer.sample(cfg.batch_size, rng), metrics=False)
+                updates_due -= 1.0
+    return sac
 
 
 def evaluate(policy: Policy, episodes: int = 10) -> list[float]:

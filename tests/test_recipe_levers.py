@@ -9,7 +9,8 @@ from forcegrasp.env import PRIVILEGED_LAYOUT, FunctionalGraspEnv, observation_la
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_file
 from forcegrasp.replay import ReplayBuffer
-from forcegrasp.sac import SAC, RunningMeanStd, SACConfig
+from forcegrasp.normalization import RunningMeanStd
+from forcegrasp.sac import SAC, SACConfig
 
 OBS, ACT, PRIV = 6, 2, 4
 

@@ -10,7 +10,8 @@ import torch
 
 from forcegrasp.policy import Actor, select_device
 from forcegrasp.replay import Batch
-from forcegrasp.sac import METRICS, SAC, SACConfig, TwinQ
+from forcegrasp.critic import TwinQ
+from forcegrasp.sac import METRICS, SAC, SACConfig
 
 OBS, ACT, B = 3, 2, 5
 

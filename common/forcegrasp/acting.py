@@ -23,7 +23,7 @@ from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.protocol import TransitionBatch
 from forcegrasp.runtime import make_env
-from forcegrasp.sac import sac_config
+from forcegrasp.recipes import sac_config
 
 
 class Actor:

@@ -23,7 +23,8 @@ from forcegrasp.protocol import TransitionBatch, Weights
 from forcegrasp.replay import ReplayBuffer
 from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import policy_metadata
-from forcegrasp.sac import SAC, sac_config
+from forcegrasp.recipes import sac_config
+from forcegrasp.sac import SAC
 
 log = logging.getLogger("forcegrasp.learner")
 MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
@@ -128,6 +129,32 @@ class Learner:
         return {"episodes": self.episode_count,
                 "return_mean": float(np.mean([e[0] for e in episodes])) if episodes else None,
                 "success_rate": float(np.mean([e[2] for e in episodes])) if episodes else None}
+
+    def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
+        """Counters, and rates over the ``elapsed`` seconds since ``updates0``/``ingested0``."""
+        return {
+            "ingested": self.ingested,
+            "updates": self.sac.num_updates,
+            "updates_per_s": (self.sac.num_updates - updates0) / max(elapsed, 1e-9),
+            "ingest_per_s": (self.ingested - ingested0) / max(elapsed, 1e-9),
+            "replay_size": len(self.buffer),
+            "policy_version": self.policy_version,
+            **self.episode_stats(),
+            "alpha": self.sac.alpha,
+            "last_checkpoint": self.last_checkpoint,
+        }
+
+    def write_scalars(self, writer, values: dict, metrics: dict) -> None:
+        """The TensorBoard figures of one stats window (``forcegrasp plot`` reads these tags)."""
+        step = self.ingested
+        for key in ("updates_per_s", "ingest_per_s", "replay_size", "rejected", "gaps", "alpha"):
+            if key in values:
+                writer.add_scalar(f"learner/{key}", values[key], step)
+        for key in ("return_mean", "success_rate"):
+            if values[key] is not None:
+                writer.add_scalar(f"actors/{key}_100", values[key], step)
+        for k, v in metrics.items():
+            writer.add_scalar(f"sac/{k}", v, step)
 
     # ------------------------------------------------------------------ giving weights and files
     def weights(self) -> Weights:

@@ -2,9 +2,10 @@
 Applications", arXiv:1812.05905): tanh-squashed Gaussian actor, twin Q critics with Polyak-averaged
 targets, automatic entropy tuning.
 
-Read top to bottom: the hyper-parameters, the critic network, the `SAC` learner (one `update` is
-the paper's Algorithm 1 inner loop), checkpoints, and a small single-environment training loop.
-The actor network lives in `forcegrasp.policy` because it is also what gets deployed.
+Read top to bottom: the hyper-parameters, the `SAC` learner (one `update` is the paper's
+Algorithm 1 inner loop), checkpoints. The critic ensemble is `forcegrasp.critic`; the actor
+network lives in `forcegrasp.policy` because it is also what gets deployed; the named recipes
+(`learner.recipe`) and their reading from the configuration are `forcegrasp.recipes`.
 
 Update order: the three losses (critics, actor, temperature) are computed from the same
 parameter values and applied together, as in the authors' original TensorFlow 1 code (softlearning
@@ -35,11 +36,12 @@ from typing import NamedTuple
 import numpy as np
 import safetensors.torch
 import torch
-from torch import nn
 
 from forcegrasp.policy import Actor, Policy, configure_threads, select_device, usable_cores
+from forcegrasp.critic import TwinQ
+from forcegrasp.normalization import RunningMeanStd
 from forcegrasp.policy_file import PolicyMetadata, atomic_write
-from forcegrasp.replay import Batch, ReplayBuffer
+from forcegrasp.replay import Batch
 
 CHECKPOINT_FORMAT = "forcegrasp-sac-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -84,89 +86,6 @@ class SACConfig:
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
         self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
-
-
-#: Named presets of SACConfig fields (``learner.recipe``); [learner.sac] overrides go on top.
-#: "paper": the paper's settings (one update per environment step, a critic that sees what the
-#: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines.
-RECIPES: dict[str, dict] = {
-    "paper": {},
-    "fast": {"updates_per_step": 0.25, "privileged_critic": True},
-}
-
-
-def sac_config(config) -> SACConfig:
-    """SACConfig with a `forcegrasp.config.Config`'s recipe, its [learner.sac] overrides and its run seed; unknown
-    or ill-typed keys are a ConfigError. The learner and the actors (n-step horizon, discount, critic
-    inputs) read SAC settings through this one function."""
-    import dataclasses
-
-    from forcegrasp.config import ConfigError
-
-    known = {f.name: f for f in dataclasses.fields(SACConfig)}
-    overrides = {}
-    for key, value in config.learner.sac.items():
-        if key not in known:
-            raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
-        overrides[key] = tuple(value) if isinstance(value, list) else value
-    recipe = RECIPES[config.learner.recipe]
-    try:
-        return dataclasses.replace(SACConfig(seed=config.run.seed), **{**recipe, **overrides})
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"learner.sac: {exc}") from None
-
-
-class TwinQ(nn.Module):
-    """`n` independent Q-networks Q_i(s, a) evaluated together, as an ensemble.
-
-    Layer k of every member is one slice of a ``(n, in, out)`` weight, so each layer of the whole
-    ensemble is a single `baddbmm` instead of n small matmuls (and n optimizer parameter sets).
-    The first layer is split into its observation and action parts, W1 [s; a] = W_s s + W_a a:
-    the actor loss needs dQ/da only, so it evaluates `head` on a no-grad `embed` (the W_s s + b
-    part) and back-propagates into the action columns alone.
-    Initialisation matches `nn.Linear` (uniform in +-1/sqrt(fan_in)) so members start independent.
-    """
-
-    def __init__(self, obs_dim: int, act_dim: int, hidden=(256, 256), n: int = 2):
-        super().__init__()
-        self.n = n
-
-        def uniform(fan_in, *shape):
-            bound = 1.0 / math.sqrt(fan_in)
-            return nn.Parameter(torch.empty(n, *shape).uniform_(-bound, bound))
-
-        self.obs_weight = uniform(obs_dim + act_dim, obs_dim, hidden[0])
-        self.act_weight = uniform(obs_dim + act_dim, act_dim, hidden[0])
-        self.weights = nn.ParameterList()  # layers after the first
-        self.biases = nn.ParameterList([uniform(obs_dim + act_dim, 1, hidden[0])])  # all layers
-        dims = [*hidden, 1]
-        for d_in, d_out in zip(dims[:-1], dims[1:]):
-            self.weights.append(uniform(d_in, d_in, d_out))
-            self.biases.append(uniform(d_in, 1, d_out))
-
-    def embed(self, obs: torch.Tensor) -> torch.Tensor:
-        """Observation part of every member's first layer (with its bias), ``(n, batch, hidden)``."""
-        return torch.baddbmm(self.biases[0], obs.expand(self.n, -1, -1), self.obs_weight)
-
-    def head(self, embedding: torch.Tensor, action: torch.Tensor, frozen: bool = False) -> torch.Tensor:
-        """Q-values ``(n, batch)`` from `embed`'s output and the actions.
-
-        ``frozen=True`` uses detached weights: gradients still flow to `action` (the actor loss
-        needs dQ/da) but none are computed for, or accumulated into, the critic's weights.
-        """
-        own = (lambda t: t.detach()) if frozen else (lambda t: t)
-        # ReLUs run in place on the fresh matmul outputs (baddbmm's backward does not need them),
-        # saving a 2 x batch x hidden buffer and a pass over memory per layer.
-        x = torch.baddbmm(embedding, action.expand(self.n, -1, -1), own(self.act_weight)).relu_()
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases[1:])):
-            x = torch.baddbmm(own(b), x, own(w))
-            if i < last:
-                x = x.relu_()
-        return x.squeeze(-1)
-
-    def forward(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        return self.head(self.embed(obs), action)
 
 
 class CriticTerms(NamedTuple):
@@ -477,37 +396,6 @@ class SAC:
         return sac, header["extra"]
 
 
-class RunningMeanStd:
-    """Mean and variance of every observation dimension over all data seen (Chan et al.'s
-    parallel update, float64). ``std`` has a floor so constant inputs stay finite."""
-
-    STD_FLOOR = 1e-3
-
-    def __init__(self, dim: int):
-        self.count, self.mean, self.var = 0.0, np.zeros(dim), np.ones(dim)
-
-    def update(self, x: np.ndarray) -> None:
-        n = x.shape[0]
-        if n == 0:
-            return
-        mean, var = x.mean(0), x.var(0)
-        total = self.count + n
-        delta = mean - self.mean
-        m2 = self.var * self.count + var * n + delta**2 * self.count * n / total
-        self.mean = self.mean + delta * n / total
-        self.var, self.count = m2 / total, total
-
-    def std(self) -> np.ndarray:
-        return np.maximum(np.sqrt(self.var), self.STD_FLOOR)
-
-    def state(self) -> dict[str, np.ndarray]:
-        return {"count": np.array(self.count), "mean": self.mean.copy(), "var": self.var.copy()}
-
-    def load(self, state: dict) -> None:
-        self.count, self.mean, self.var = float(state["count"]), np.array(state["mean"], np.float64), np.array(
-            state["var"], np.float64)
-
-
 def _fused_adam_ok(device: torch.device) -> bool:
     """Fused Adam runs the whole parameter update as one kernel; CPU support arrived in torch 2.4."""
     try:
@@ -515,43 +403,3 @@ def _fused_adam_ok(device: torch.device) -> bool:
         return True
     except (RuntimeError, TypeError):
         return False
-
-
-def train(env, config: SACConfig | None = None, on_episode=None) -> SAC:
-    """Run SAC on one Gymnasium environment whose action space is Box(-1, 1) (wrap others with
-    `gymnasium.wrappers.RescaleAction`). ``on_episode(step, episode_return)`` is called after each
-    episode. Local reference loop; the distributed learner service does the same with many actors.
-    """
-    cfg = config or SACConfig()
-    space = env.action_space
-    if not (np.allclose(space.low, -1.0) and np.allclose(space.high, 1.0)):
-        raise ValueError(f"action space must be [-1, 1] (got {space}); wrap the env with RescaleAction(env, -1, 1)")
-    obs_dim, act_dim = env.observation_space.shape[0], space.shape[0]
-    sac = SAC(obs_dim, act_dim, cfg)
-    buffer = ReplayBuffer(obs_dim, act_dim, min(cfg.buffer_size, cfg.total_steps))
-    rng = np.random.default_rng(cfg.seed)
-
-    obs, _ = env.reset(seed=cfg.seed)
-    episode_return, updates_due = 0.0, 0.0
-    for step in range(cfg.total_steps):
-        if step < cfg.learning_starts:  # pure exploration fills the buffer first
-            action = rng.uniform(-1.0, 1.0, act_dim).astype(np.float32)
-        else:
-            action = sac.act(obs)
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        # Store the real next observation; only true termination stops bootstrapping.
-        buffer.add(obs, action, reward, next_obs, float(terminated))
-        episode_return += float(reward)
-        obs = next_obs
-        if terminated or truncated:
-            if on_episode is not None:
-                on_episode(step + 1, episode_return)
-            obs, _ = env.reset()
-            episode_return = 0.0
-
-        if step + 1 >= cfg.learning_starts:  # fractional UTD ratios accumulate across steps
-            updates_due += cfg.updates_per_step
-            while updates_due >= 1.0:
-                sac.update(buffer.sample(cfg.batch_size, rng), metrics=False)
-                updates_due -= 1.0
-    return sac

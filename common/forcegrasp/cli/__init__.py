@@ -72,25 +72,6 @@ def cmd_objects(args) -> int:
     return 0
 
 
-def cmd_train(args) -> int:
-    from forcegrasp.objects import ObjectFileError, load_object
-    from forcegrasp.cli.train import Trainer, config_from_args
-
-    try:
-        load_object(args.object)
-    except ObjectFileError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    trainer = Trainer(config_from_args(args), log=lambda msg: print(msg, flush=True))
-    try:
-        trainer.run(args.steps)
-    except KeyboardInterrupt:
-        print(f"interrupted at step {trainer.step}; resume from the last checkpoint with the same command")
-        return 130
-    print(f"done: policy at {trainer.dir / 'policy.safetensors'}, curve at {trainer.dir / 'curve.png'}")
-    return 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="forcegrasp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -102,21 +83,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="label path (default assets/labels/OBJECT.json)")
     p.add_argument("--dry-run", action="store_true", help="run and check, write nothing")
     p.set_defaults(func=cmd_label)
-
-    p = sub.add_parser("train", help="train SAC on one object in this process (resumable)")
-    p.add_argument("object", nargs="?", default="mug")
-    p.add_argument("--steps", type=int, default=1_000_000, help="total environment steps (paper: 1M)")
-    p.add_argument("--run-dir", default=None, help="default runs/OBJECT; an existing run resumes")
-    p.add_argument("--no-force-feedback", action="store_true", help="the paper's ablation: no joint torques")
-    p.add_argument("--mass-scale", type=float, default=5.0)
-    p.add_argument("--learning-starts", type=int, default=1000)
-    p.add_argument("--batch-size", type=int, default=256)
-    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256])
-    p.add_argument("--checkpoint-every", type=int, default=2000)
-    p.add_argument("--eval-episodes", type=int, default=10)
-    p.add_argument("--log-every", type=int, default=500)
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_train)
 
     for name, (_, help_text) in {**SERVICES, **TOOLS}.items():
         sub.add_parser(name, help=help_text + " (see forcegrasp %s --help)" % name, add_help=False)
@@ -143,6 +109,7 @@ TOOLS = {
     "best": ("forcegrasp_evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
     "replay": ("forcegrasp.cli.replay", "render an evaluator episode log (.mcap) to an image strip or video"),
     "plot": ("forcegrasp.cli.plot", "training curves of one or several runs as one PNG"),
+    "train": ("forcegrasp.cli.train", "train in this process: the same roles and files as `up`, no network (resumable)"),
     "experiment": ("forcegrasp.cli.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
     "online-check": ("forcegrasp.cli.online_check", "does a frozen policy's online success match its offline tests?"),
     "eval": ("forcegrasp.cli.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),

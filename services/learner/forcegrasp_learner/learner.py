@@ -97,22 +97,14 @@ class LearnerService(Learner):
         return Progress(self.ingested, self.sac.num_updates, self.headroom(), self.streams.acked())
 
     def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
-        """Counters, and rates over the ``elapsed`` seconds since ``updates0``/``ingested0``."""
+        """The role's counters plus what the network adds: rejects, gaps, per-actor streams."""
         return {
-            "ingested": self.ingested,
-            "updates": self.sac.num_updates,
-            "updates_per_s": (self.sac.num_updates - updates0) / max(elapsed, 1e-9),
-            "ingest_per_s": (self.ingested - ingested0) / max(elapsed, 1e-9),
-            "replay_size": len(self.buffer),
-            "policy_version": self.policy_version,
-            **self.episode_stats(),
+            **super().stats(elapsed, updates0, ingested0),
             "accepted": self.rejects.accepted,
             "rejected": self.rejects.total,
             "rejected_by_reason": self.rejects.counts(),
             "gaps": self.streams.gaps,
             "dropped_queue_full": self.inbox.dropped if self.inbox is not None else 0,
-            "alpha": self.sac.alpha,
-            "last_checkpoint": self.last_checkpoint,
             "actors": self.streams.stats(),
         }
 
@@ -173,18 +165,11 @@ class LearnerService(Learner):
             self.writer.close()
 
     def _log_scalars(self, values: dict, metrics: dict) -> None:
-        w, step = self.writer, self.ingested
-        for key in ("updates_per_s", "ingest_per_s", "replay_size", "rejected", "gaps", "alpha"):
-            w.add_scalar(f"learner/{key}", values[key], step)
-        for key in ("return_mean", "success_rate"):
-            if values[key] is not None:
-                w.add_scalar(f"actors/{key}_100", values[key], step)
-        for k, v in metrics.items():
-            w.add_scalar(f"sac/{k}", v, step)
+        self.write_scalars(self.writer, values, metrics)
         staleness = [a["staleness"] for a in values["actors"].values()]
         if staleness:
-            w.add_scalar("actors/staleness", float(np.mean(staleness)), step)
-        w.flush()
+            self.writer.add_scalar("actors/staleness", float(np.mean(staleness)), self.ingested)
+        self.writer.flush()
         log.info("ingested %d  updates %d (%.0f/s)  ingest %.0f/s  replay %d  v%d  episodes %d  return %s  "
                  "success %s  rejected %d  gaps %d", values["ingested"], values["updates"], values["updates_per_s"],
                  values["ingest_per_s"], values["replay_size"], values["policy_version"], values["episodes"],
