@@ -87,7 +87,7 @@ SCHEMAS: dict[str, dict] = {
 }
 for _name, _schema in SCHEMAS.items():
     _schema["title"] = _name
-    _schema["$comment"] = "ForceGrasp episode log (common/forcegrasp/mcap_log.py); the fields ForceGrasp writes"
+    _schema["$comment"] = "ForceGrasp episode log (common/forcegrasp/mcap_log/); the fields ForceGrasp writes"
 
 TOPIC_SCHEMAS = {
     "/scene": "foxglove.SceneUpdate",
