@@ -4,9 +4,10 @@ In-process tests use the real service class (an injected scoring function where 
 scores it controls) and real files; ``test_evaluator_service.py`` runs the service as a process.
 
 Policies with *known* scores: a policy whose weights are all zero acts with the constant action
-``tanh(last bias)``. Moving the hand base away along ARTx at a constant speed ``s`` (fraction of
-the maximal 4 mm step) gives a return that falls strictly with ``s`` on every placement (the
-palm error grows faster), so the best five of a set of speeds are the five slowest.
+``tanh(last bias)``. Backing the hand base away from the camera (the third translation, negative)
+at a constant speed ``s`` (fraction of the maximal 4 mm step) gives a return that falls strictly
+with ``s`` on every placement (the palm error grows faster), so the best five of a set of speeds
+are the five slowest.
 """
 
 from __future__ import annotations
@@ -44,10 +45,10 @@ def tiny_config(tmp_path, run="ev", **extra):
 
 
 def policy_bytes(config, step, speed=0.0, hidden=HIDDEN, **extra) -> bytes:
-    """A policy acting with the constant action (-speed, 0, ..., 0); ``extra`` goes to its metadata."""
+    """A policy acting with the constant action (0, 0, -speed, 0, ...); ``extra`` goes to its metadata."""
     meta = policy_metadata(config, hidden, training_steps=step, policy_version=step // 1000, **extra)
     weights = {k: np.zeros(s, np.float32) for k, s in actor_param_shapes(meta).items()}
-    weights[f"layers.{len(hidden)}.bias"][0] = np.arctanh(-speed)
+    weights[f"layers.{len(hidden)}.bias"][2] = np.arctanh(-speed)
     return policy_to_bytes(weights, meta)
 
 

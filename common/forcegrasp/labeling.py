@@ -17,6 +17,7 @@ in the task's own terms is kept.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 from dataclasses import dataclass
 
@@ -38,6 +39,8 @@ from forcegrasp.scene import (
 
 FLEXION_JOINTS = tuple(j for j in HAND_JOINTS if j[-1] in "012" and j[:2] != "WR")
 CONTACT_TARGET = -0.001  # m: aiming 1 mm into the part makes the servo press on it
+PRESS_DEPTH = 0.004  # m: holding fingers' servo targets lie this far inside the object (grip force)
+PRESS_REACH = 0.003  # m: a fingertip this close to the object at Gg counts as a holding contact
 PENETRATION_FREE = 0.0012  # m of depth tolerated before the penalty starts
 
 
@@ -48,7 +51,8 @@ class GoalProblem:
     ix: SceneIndex
     functional_geom: int
     part_geoms: list[int]
-    support_geoms: list[int]
+    holds: list[tuple[int, list[int]]]  # (fingertip geom, the object geoms it may rest on)
+    targets: list[tuple[str, int, np.ndarray]]  # ("site" or "geom", id, a point in the world it should reach)
     palm_geom: int
     palm_contact: bool
     table_geom: int
@@ -65,8 +69,10 @@ class GoalProblem:
         dist = lambda a, b: mujoco.mj_geomDistance(m, d, a, b, 0.2, None)  # noqa: E731
         gap = min(dist(self.functional_geom, g) for g in self.part_geoms)
         res = [self.w_functional * (gap - CONTACT_TARGET)]
-        for tip in self.support_geoms:
-            res.append(self.w_contact * min(dist(tip, g) for g in ix.object_geoms))
+        for tip, parts in self.holds:
+            res.append(self.w_contact * min(dist(tip, g) for g in parts))
+        for kind, i, point in self.targets:
+            res.extend(self.w_contact * ((d.site_xpos[i] if kind == "site" else d.geom_xpos[i]) - point))
         if self.palm_contact:
             res.append(self.w_contact * min(dist(self.palm_geom, g) for g in ix.object_geoms))
         for h in ix.hand_geoms:
@@ -98,8 +104,12 @@ def _start_pose(obj: ObjectSpec, m: mujoco.MjModel, ix: SceneIndex) -> np.ndarra
     return np.clip(q, ix.all_range[:, 0], ix.all_range[:, 1])
 
 
-def solve_goal(obj: ObjectSpec, m: mujoco.MjModel | None = None, seed: int = 0, restarts: int = 4, log=print):
-    """Best goal grasp over a few perturbed starts: (q (30,), residual cost, problem)."""
+def solve_goal(obj: ObjectSpec, m: mujoco.MjModel | None = None, seed: int = 0, restarts: int = 4, log=print,
+               accept=None):
+    """Best goal grasp over a few perturbed starts: (q (30,), residual cost, problem).
+
+    ``accept(q) -> bool`` (e.g. "it holds"), when given, ranks first the solutions it accepts: a
+    low residual only says the contacts are where the hint asked, not that they grip."""
     m = m if m is not None else build_model(obj)
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
@@ -110,7 +120,8 @@ def solve_goal(obj: ObjectSpec, m: mujoco.MjModel | None = None, seed: int = 0, 
         ix=ix,
         functional_geom=ix.fingertip_geoms[hint.functional_finger],
         part_geoms=[m.geom(object_geom_name(obj, p)).id for p in obj.functional_part],
-        support_geoms=[ix.fingertip_geoms[f] for f in hint.support_fingers],
+        holds=holding_contacts(obj, m, ix),
+        targets=[(*_target_frame(m, f), np.asarray(p) + [0.0, 0.0, resting_height(m)]) for f, p in hint.targets.items()],
         palm_geom=m.geom("C_palm0").id,
         palm_contact=hint.palm_contact,
         table_geom=_table_geom(m),
@@ -128,14 +139,66 @@ def solve_goal(obj: ObjectSpec, m: mujoco.MjModel | None = None, seed: int = 0, 
             x0[3:6] += rng.normal(0, 0.05, 3)
             x0[6:] += rng.normal(0, 0.1, 24)
         x0 = np.clip(x0, lo, hi)
+        if hint.two_stage:  # thread first: the holding contacts would pull the fingers round the opening
+            threading = dataclasses.replace(problem, holds=[])
+            x0, _ = minimize.least_squares(x0, threading.residual, bounds=(lo, hi), max_iter=80, verbose=0,
+                                           output=io.StringIO())
         x, _ = minimize.least_squares(x0, problem.residual, bounds=(lo, hi), max_iter=80, verbose=0, output=io.StringIO())
         cost = float(np.sum(problem.residual_one(x)[: -len(x)] ** 2))
-        log(f"  start {attempt + 1}/{restarts}: contact+penetration cost {cost:.3e}")
-        if best is None or cost < best[1]:
-            best = (x, cost)
-        if cost < 1e-4:
+        ok = accept is None or bool(accept(x))
+        log(f"  start {attempt + 1}/{restarts}: contact+penetration cost {cost:.3e}"
+            + ("" if accept is None else f", {'accepted' if ok else 'rejected by the checks'}"))
+        if best is None or (not ok, cost) < (not best[2], best[1]):
+            best = (x, cost, ok)
+        if ok and cost < 1e-4:
             break
     return best[0], best[1], problem
+
+
+def _target_frame(m: mujoco.MjModel, key: str) -> tuple[str, int]:
+    """``ff`` -> the fingertip site; ``ff.middle`` -> the middle phalanx's collision capsule."""
+    finger, _, segment = key.partition(".")
+    return ("geom", m.geom(f"C_{finger}{segment}").id) if segment else ("site", m.site(f"S_{finger}tip").id)
+
+
+def holding_contacts(obj: ObjectSpec, m: mujoco.MjModel, ix: SceneIndex) -> list[tuple[int, list[int]]]:
+    """The hint's holding contacts: ``contacts`` (finger -> named parts) and ``support_fingers``
+    (anywhere on the object)."""
+    out = {f: [m.geom(object_geom_name(obj, p)).id for p in parts] for f, parts in obj.grasp_hint.contacts.items()}
+    for f in obj.grasp_hint.support_fingers:
+        out.setdefault(f, list(ix.object_geoms))
+    return [(ix.fingertip_geoms[f], parts) for f, parts in out.items()]
+
+
+def press(obj: ObjectSpec, m: mujoco.MjModel, q: np.ndarray, fingers, depth: float = PRESS_DEPTH) -> np.ndarray:
+    """Servo targets that push each of ``fingers``' tips ``depth`` into the object along the
+    contact normal (one Jacobian step per finger): targets exactly at contact rest on the object
+    but would not carry it, targets inside it squeeze."""
+    d = mujoco.MjData(m)
+    ix = SceneIndex.of(m)
+    d.qpos[ix.all_qpos] = q
+    d.qpos[ix.object_qpos + 2] = resting_height(m)
+    d.qpos[ix.object_qpos + 3] = 1.0
+    mujoco.mj_kinematics(m, d)
+    mujoco.mj_comPos(m, d)
+    out = q.copy()
+    for f in fingers:
+        tip = ix.fingertip_geoms[f]
+        gap, fromto = np.inf, np.zeros(6)
+        for o in ix.object_geoms:
+            ft = np.zeros(6)
+            dist = mujoco.mj_geomDistance(m, d, tip, o, 0.05, ft)
+            if dist < gap:
+                gap, fromto = dist, ft
+        if gap > PRESS_REACH:
+            continue  # not touching: nothing to press
+        normal = _unit(fromto[3:] - fromto[:3]) * (1.0 if gap >= 0 else -1.0)
+        jacp = np.zeros((3, m.nv))
+        mujoco.mj_jac(m, d, jacp, None, fromto[:3], m.geom_bodyid[tip])
+        cols = [i for i, j in enumerate(ALL_JOINTS) if j.startswith(f.upper())]
+        dofs = [m.jnt_dofadr[m.joint(ALL_JOINTS[i]).id] for i in cols]
+        out[cols] += np.linalg.pinv(jacp[:, dofs]) @ (normal * (depth + max(gap, 0.0)))
+    return np.clip(out, ix.all_range[:, 0], ix.all_range[:, 1])
 
 
 def _table_geom(m: mujoco.MjModel) -> int:
@@ -148,8 +211,18 @@ def hand_object_clearance(m, d, ix: SceneIndex) -> float:
     return min(mujoco.mj_geomDistance(m, d, h, o, 0.1, None) for h in ix.hand_geoms for o in ix.object_geoms)
 
 
-def pregrasp_candidates(m: mujoco.MjModel, q_goal: np.ndarray):
-    """Yield (opening fraction, retreat distance, direction name, q0), nearest candidates first.
+#: Pre-grasp retreat directions, built from the goal pose: along the palm normal, back along the
+#: forearm, upwards, towards the side the hand comes from (-y), and mixes. An object file's ``grasp_hint.approach`` says which to try first.
+RETREAT_DIRECTIONS = ("palm normal", "back", "up", "back+up", "normal+up", "normal+back", "-y", "-y+up")
+RETREATS_M = (0.03, 0.04, 0.05, 0.06, 0.07, 0.08, 0.09, 0.10)
+KEEP_SHARE = 0.0  # how much of the opening a kept finger takes
+OPENINGS = (0.5, 0.8, 1.0)  # fraction of the goal's finger flexion taken away at G0 (1: straight)
+
+
+def pregrasp_candidates(m: mujoco.MjModel, q_goal: np.ndarray, first: tuple[str, ...] = (), keep: tuple[str, ...] = ()):
+    """Yield (opening fraction, retreat distance, direction name, q0), nearest candidates first,
+    the ``first`` directions ahead of the others at each distance; the fingers in ``keep`` open half
+    as much (a finger that slides into an opening keeps most of its shape).
 
     The palm backs off along its normal, back along the forearm, or upwards (or a mix): which
     one sweeps cleanly depends on how the fingers enclose the part, so the search tries them.
@@ -162,22 +235,23 @@ def pregrasp_candidates(m: mujoco.MjModel, q_goal: np.ndarray):
     normal = palm_normal_world(m, d, ix)
     back = -finger_direction_world(m, d)
     up = np.array([0.0, 0.0, 1.0])
-    directions = {
-        "palm normal": -normal,
-        "back": back,
-        "up": up,
-        "back+up": back + up,
-        "normal+up": -normal + up,
-        "normal+back": -normal + back,
-    }
+    toward_hand = np.array([0.0, -1.0, 0.0])  # the side the hand comes from (world -y): out along a handle's opening
+    vectors = {"palm normal": -normal, "back": back, "up": up, "back+up": back + up, "normal+up": -normal + up,
+               "normal+back": -normal + back, "-y": toward_hand, "-y+up": toward_hand + up}
+    unknown = [a for a in first if a not in vectors]
+    if unknown:
+        raise ValueError(f"grasp_hint.approach names unknown directions {unknown}; known: {list(vectors)}")
+    order = [*first, *(n for n in RETREAT_DIRECTIONS if n not in first)]
     flex = np.array([ALL_JOINTS.index(j) for j in FLEXION_JOINTS])
+    # A kept finger opens half as much: straight enough to slide into its opening, curled enough to go on.
+    share = np.array([KEEP_SHARE if j[:2].lower() in keep else 1.0 for j in FLEXION_JOINTS])
     S = slide_axes(m)
-    for retreat in (0.02, 0.03, 0.04):
-        for name, direction in directions.items():
-            direction = direction / np.linalg.norm(direction)
-            for opening in (0.3, 0.6, 0.9):
+    for retreat in RETREATS_M:
+        for name in order:
+            direction = vectors[name] / np.linalg.norm(vectors[name])
+            for opening in OPENINGS:
                 q0 = q_goal.copy()
-                q0[flex] = q_goal[flex] * (1.0 - opening)
+                q0[flex] = q_goal[flex] * (1.0 - opening * share)
                 q0[:3] = q_goal[:3] + S.T @ (direction * retreat)
                 yield opening, retreat, name, np.clip(q0, ix.all_range[:, 0], ix.all_range[:, 1])
 
@@ -208,91 +282,74 @@ def goal_palm_of(m: mujoco.MjModel, q_goal: np.ndarray) -> np.ndarray:
     return d.site_xpos[ix.palm_site] - d.xpos[ix.object_body]
 
 
-def hold_check(obj: ObjectSpec, q_goal: np.ndarray, mass_scale: float = 1.0, seconds: float = 1.0) -> dict:
-    """Hold the goal grasp (servo targets = Gg) for ``seconds`` with gravity, object at nominal.
-
-    Returns the object's displacement, the deepest hand-object penetration seen and whether the
-    functional finger touches the functional part at the end.
-    """
-    m = build_model(obj, mass_scale)
-    d = mujoco.MjData(m)
-    ix = SceneIndex.of(m)
-    d.qpos[ix.all_qpos] = q_goal
-    d.qpos[ix.object_qpos + 2] = resting_height(m)
-    d.qpos[ix.object_qpos + 3] = 1.0
-    d.ctrl[ix.base_act] = q_goal[:6]
-    d.ctrl[ix.hand_act] = q_goal[6:]
-    mujoco.mj_forward(m, d)
-    start = d.xpos[ix.object_body].copy()
-    hand = set(ix.hand_geoms.tolist())
-    objg = set(ix.object_geoms.tolist())
-    functional = ix.fingertip_geoms[obj.grasp_hint.functional_finger]
-    parts = {m.geom(object_geom_name(obj, p)).id for p in obj.functional_part}
-    depth = 0.0
-    for _ in range(int(round(seconds / m.opt.timestep))):
-        mujoco.mj_step(m, d)
-        for c in d.contact[: d.ncon] if d.ncon else []:
-            if (c.geom1 in hand and c.geom2 in objg) or (c.geom2 in hand and c.geom1 in objg):
-                depth = max(depth, -float(c.dist))
-    gap = min(mujoco.mj_geomDistance(m, d, functional, p, 0.05, None) for p in parts)
-    return {
-        "object_moved_m": float(np.linalg.norm(d.xpos[ix.object_body] - start)),
-        "max_penetration_m": depth,
-        "functional_gap_m": float(gap),
-        "functional_contact": bool(gap < 0.001),
-    }
-
-
-def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, log=print) -> GraspLabel:
-    """Goal by optimisation, pre-grasp by search, checks recorded in the label."""
+def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter: float = 0.02, log=print) -> GraspLabel:
+    """Goal by optimisation, pre-grasp by search, checks recorded in the label (``label_checks``)."""
     from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.label_checks import PALM_CLEARANCE_M, hold_check, lift_check, pregrasp_clearance
     from forcegrasp.scripted import run_episode
 
     m = build_model(obj)
+    if obj.grasp_hint.grasp:
+        log(f"grasp: {obj.grasp_hint.grasp}")
     log(f"[1/3] goal grasp for {obj.name}: least squares over 30 joints")
-    q_goal, cost, _ = solve_goal(obj, m, seed=seed, log=log)
+    def grips(q) -> bool:  # the functional finger on its part, and the hand alone carries the object
+        return hold_check(obj, q, mass_scale=mass_scale)["functional_contact"] and lift_check(obj, q, 1.0)["holds"]
+
+    q_goal, cost, _ = solve_goal(obj, m, seed=seed, log=log, accept=grips)
     goal = Grasp(base=q_goal[:6].copy(), hand=q_goal[6:].copy())
     goal_palm = goal_palm_of(m, q_goal)
 
-    log("[2/3] pre-grasp: search over finger opening and palm retreat")
+    log(f"[2/3] pre-grasp: search over finger opening and palm retreat, clear over the +-{jitter * 100:.0f} cm square")
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
     rest_z = resting_height(m)
     chosen = None
-    for opening, retreat, direction, q0 in pregrasp_candidates(m, q_goal):
+    for opening, retreat, direction, q0 in pregrasp_candidates(m, q_goal, obj.grasp_hint.approach,
+                                                                   obj.grasp_hint.keep_shape):
         d.qpos[:] = 0
         d.qpos[ix.all_qpos] = q0
         d.qpos[ix.object_qpos + 2] = rest_z
         d.qpos[ix.object_qpos + 3] = 1.0
         mujoco.mj_kinematics(m, d)
-        clearance = hand_object_clearance(m, d, ix)
         what = f"  {direction:>11}, retreat {retreat * 100:.0f} cm, opening {opening:.1f}:"
-        if clearance < 0.005:
-            log(f"{what} clearance {clearance * 1000:.1f} mm, rejected")
+        if hand_object_clearance(m, d, ix) < 0.005:
+            continue  # touching, or nearly, at the nominal placement: not worth a closer look
+        square = pregrasp_clearance(obj, q0, jitter)
+        if not square["clear"] or square["palm_distance_m"] < PALM_CLEARANCE_M * 0.9:
+            log(f"{what} clearance {square['min_clearance_m'] * 1000:.1f} mm over the square, palm "
+                f"{square['palm_distance_m'] * 1000:.0f} mm away: rejected")
             continue
         label = GraspLabel(obj.name, Grasp(q0[:6].copy(), q0[6:].copy()), goal, goal_palm)
         env = FunctionalGraspEnv(obj.name, mass_scale=mass_scale, label=label)
         result = run_episode(env, (0.0, 0.0), told=True)
-        log(
-            f"{what} clearance {clearance * 1000:.1f} mm, "
-            f"nominal approach {'succeeds' if result['success'] else 'fails (' + str(result['failure']) + ')'}"
-        )
+        log(f"{what} clear over the square (>= {square['min_clearance_m'] * 1000:.1f} mm), palm "
+            f"{square['palm_distance_m'] * 1000:.0f} mm away, nominal approach "
+            f"{'succeeds' if result['success'] else 'fails (' + str(result['failure']) + ')'}")
         if result["success"]:
-            chosen = (opening, retreat, direction, q0, clearance, result)
+            chosen = (opening, retreat, direction, q0, square, result)
             break
     if chosen is None:
-        raise RuntimeError(f"{obj.name}: no pre-grasp candidate gives a clean nominal approach")
-    opening, retreat, direction, q0, clearance, result = chosen
+        raise RuntimeError(f"{obj.name}: no pre-grasp candidate is clear over the jitter square with a clean approach")
+    opening, retreat, direction, q0, square, result = chosen
 
-    log("[3/3] holding the goal grasp for 1 s")
+    log(f"[3/3] holding the goal grasp for 1 s: on the table at {mass_scale:g}x mass, in the air at 1x and {mass_scale:g}x")
     checks = hold_check(obj, q_goal, mass_scale=mass_scale)
     checks["hold_mass_scale"] = mass_scale
+    lift = lift_check(obj, q_goal, 1.0)
+    heavy = lift_check(obj, q_goal, mass_scale)
     checks.update(
+        holds=lift["holds"],
+        hold_fingers=lift["fingers_in_contact"],
+        hold_moved_in_palm_m=lift["object_moved_in_palm_m"],
+        holds_heavy=heavy["holds"],
+        hold_heavy_moved_in_palm_m=heavy["object_moved_in_palm_m"],
         goal_cost=cost,
         pregrasp_opening=opening,
         pregrasp_retreat_m=retreat,
         pregrasp_direction=direction,
-        pregrasp_clearance_m=float(clearance),
+        pregrasp_clearance_m=square["min_clearance_m"],
+        pregrasp_palm_distance_m=square["palm_distance_m"],
+        pregrasp_clear_over_square=square["clear"],
         nominal_approach_steps=int(result["step"]),
     )
     return GraspLabel(obj.name, Grasp(q0[:6].copy(), q0[6:].copy()), goal, goal_palm, checks)

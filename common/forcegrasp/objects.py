@@ -77,6 +77,20 @@ class GraspHint:
     palm_at: tuple[float, float, float]
     fingers: dict[str, float] = field(default_factory=dict)
     palm_contact: bool = False
+    #: finger -> the parts its distal phalanx rests on (the grasp's holding contacts)
+    contacts: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    #: finger (its tip) or finger.segment (proximal, middle, distal: that phalanx's centre) -> a
+    #: point in the object's frame (m) it should reach: which face of a part it rests on, or that
+    #: it passes through an opening
+    targets: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    #: solve the targets first (a finger threaded through an opening), then add the holding contacts
+    two_stage: bool = False
+    #: fingers that keep their goal shape at the pre-grasp (a finger that slides into an opening)
+    keep_shape: tuple[str, ...] = ()
+    #: pre-grasp retreat directions to try first (names of ``labeling.RETREAT_DIRECTIONS``)
+    approach: tuple[str, ...] = ()
+    #: the grasp in words: what a person would do (``forcegrasp label`` prints it)
+    grasp: str = ""
 
 
 @dataclass(frozen=True)
@@ -184,6 +198,26 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
     fingers = hint_raw.get("fingers", {})
     if not isinstance(fingers, dict):
         raise ObjectFileError(f"{source}: field 'grasp_hint.fingers' must be a map joint -> angle")
+    contacts_raw = hint_raw.get("contacts", {})
+    if not isinstance(contacts_raw, dict):
+        raise ObjectFileError(f"{source}: field 'grasp_hint.contacts' must be a map finger -> list of parts")
+    contacts = {}
+    for f, parts in contacts_raw.items():
+        parts = (parts,) if isinstance(parts, str) else tuple(parts) if isinstance(parts, list) else None
+        if f not in FINGERS or f == finger or not parts or any(p not in names for p in parts):
+            raise ObjectFileError(f"{source}: field 'grasp_hint.contacts.{f}' must map a finger of {FINGERS} "
+                                  f"(not the functional one) to parts among {names}, got {contacts_raw[f]!r}")
+        contacts[f] = parts
+    targets_raw = hint_raw.get("targets", {})
+    segments = ("proximal", "middle", "distal")
+    if not isinstance(targets_raw, dict) or any(
+            f.split(".")[0] not in FINGERS or (f.count(".") and f.split(".", 1)[1] not in segments) for f in targets_raw):
+        raise ObjectFileError(f"{source}: field 'grasp_hint.targets' must map fingers of {FINGERS} (or "
+                              f"finger.segment, segment one of {segments}) to points [x, y, z]")
+    targets = {f: _floats(v, 3, f"grasp_hint.targets.{f}", source) for f, v in targets_raw.items()}
+    approach = hint_raw.get("approach", [])
+    if not isinstance(approach, list) or not all(isinstance(a, str) for a in approach):
+        raise ObjectFileError(f"{source}: field 'grasp_hint.approach' must be a list of direction names")
     hint = GraspHint(
         functional_finger=finger,
         support_fingers=support,
@@ -191,6 +225,12 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
         palm_at=_floats(_field(hint_raw, "palm_at", f"{source}: grasp_hint"), 3, "grasp_hint.palm_at", source),
         fingers={str(k): float(v) for k, v in fingers.items()},
         palm_contact=bool(hint_raw.get("palm_contact", False)),
+        contacts=contacts,
+        targets=targets,
+        two_stage=bool(hint_raw.get("two_stage", False)),
+        keep_shape=tuple(f for f in hint_raw.get("keep_shape", []) if f in FINGERS),
+        approach=tuple(approach),
+        grasp=str(hint_raw.get("grasp", "")),
     )
     friction = _floats(raw.get("friction", [1.0, 0.005, 0.0001]), 3, "friction", source)
     return ObjectSpec(

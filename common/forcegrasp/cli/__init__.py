@@ -19,19 +19,19 @@ def cmd_label(args) -> int:
         return 2
     label = label_object(obj, mass_scale=args.mass_scale, seed=args.seed)
     checks = label.checks
-    ok = (
-        checks["functional_contact"]
-        and checks["max_penetration_m"] < 0.002
-        and checks["object_moved_m"] < 0.01
-        and checks["pregrasp_clearance_m"] > 0
-    )
+    ok = label_ok(checks)
     print(json.dumps(checks, indent=2))
     print(
         f"functional finger touches {'/'.join(obj.functional_part)}: {checks['functional_contact']} "
         f"(gap {checks['functional_gap_m'] * 1000:.1f} mm)\n"
         f"max penetration while holding: {checks['max_penetration_m'] * 1000:.2f} mm (limit 2 mm)\n"
-        f"object moved while holding 1 s: {checks['object_moved_m'] * 1000:.2f} mm (limit 10 mm)\n"
-        f"pre-grasp clearance: {checks['pregrasp_clearance_m'] * 1000:.1f} mm (no contact)"
+        f"object moved while holding 1 s on the table: {checks['object_moved_m'] * 1000:.2f} mm (limit 10 mm)\n"
+        f"the grasp holds without the table (1x mass): {checks['holds']} (moved {checks['hold_moved_in_palm_m'] * 1000:.1f} mm "
+        f"in the palm, limit 10 mm; in contact: {', '.join(checks['hold_fingers']) or 'nothing'}; thumb and two more needed)\n"
+        f"... at {checks['hold_mass_scale']:g}x mass: {checks['holds_heavy']} (moved {checks['hold_heavy_moved_in_palm_m'] * 1000:.1f} mm)\n"
+        f"pre-grasp clear over the whole jitter square: {checks['pregrasp_clear_over_square']} "
+        f"(closest {checks['pregrasp_clearance_m'] * 1000:.1f} mm), palm {checks['pregrasp_palm_distance_m'] * 1000:.0f} mm "
+        f"from the object (about 20 mm or more)"
     )
     if args.dry_run:
         return 0 if ok else 1
@@ -44,6 +44,12 @@ def cmd_label(args) -> int:
     picture = _save_grasp_picture(obj.name, label)
     print(f"wrote {picture} (top row: pre-grasp G0, bottom row: goal grasp Gg)")
     return 0
+
+
+def label_ok(checks: dict) -> bool:
+    """The checks a label must pass to be written (see forcegrasp.label_checks)."""
+    return bool(checks["functional_contact"] and checks["max_penetration_m"] < 0.002 and checks["object_moved_m"] < 0.01
+                and checks["holds"] and checks["pregrasp_clear_over_square"])
 
 
 def _save_grasp_picture(name: str, label=None):
