@@ -1,18 +1,22 @@
 """Grasp labelling: find the goal functional grasp by optimisation, derive the pre-grasp by search.
 
 Goal grasp Gg: nonlinear least squares (``mujoco.minimize.least_squares``) over the 30 joint
-values, with the object at its nominal pose. Residuals, each a signed distance from
-``mj_geomDistance`` after ``mj_kinematics``:
+values, with the object at its nominal pose, from the start pose of the object file's
+``grasp_hint``. Residuals, each a signed distance from ``mj_geomDistance`` or a position after
+``mj_kinematics``:
 - the functional finger's distal phalanx touches the functional part (gap -> -1 mm: the servo then presses);
-- each support fingertip touches the object (gap -> 0), and the palm too where the object's
-  hint asks for a power grasp (``palm_contact``);
+- each finger of ``contacts`` rests on its parts, each of ``support_fingers`` anywhere on the
+  object (gap -> 0), and the palm too where the hint asks for a power grasp (``palm_contact``);
+- each fingertip or phalanx of ``targets`` reaches its point (which face it rests on);
 - no hand geom penetrates the object or the table (penalty on depth beyond 1.2 mm);
 - a small pull towards the start pose keeps the posture natural.
+Of a few perturbed starts the lowest-residual solution that *holds* (``label_checks``) is kept.
 
-Pre-grasp G0: candidates open the fingers part-way from Jg and back the palm off by 2-4 cm
-(along its normal, back along the forearm, upwards, or a mix); the first candidate with no contact at G0 (clearance >= 5 mm) whose straight
-J = h(Jg - J0) + J0 sweep, played by the scripted controller at the nominal placement, succeeds
-in the task's own terms is kept.
+Pre-grasp G0: candidates open the fingers part-way from Jg and back the palm off by 3-9 cm along
+one of ``RETREAT_DIRECTIONS``; the first candidate with no contact anywhere in the jitter square
+and the palm about 2 cm or more from the object, whose straight J = h(Jg - J0) + J0 sweep, played
+by the scripted controller at the nominal placement, succeeds in the task's own terms is kept.
+See ``docs/grasps.md``.
 """
 
 from __future__ import annotations
@@ -39,8 +43,6 @@ from forcegrasp.scene import (
 
 FLEXION_JOINTS = tuple(j for j in HAND_JOINTS if j[-1] in "012" and j[:2] != "WR")
 CONTACT_TARGET = -0.001  # m: aiming 1 mm into the part makes the servo press on it
-PRESS_DEPTH = 0.004  # m: holding fingers' servo targets lie this far inside the object (grip force)
-PRESS_REACH = 0.003  # m: a fingertip this close to the object at Gg counts as a holding contact
 PENETRATION_FREE = 0.0012  # m of depth tolerated before the penalty starts
 
 
@@ -168,37 +170,6 @@ def holding_contacts(obj: ObjectSpec, m: mujoco.MjModel, ix: SceneIndex) -> list
     for f in obj.grasp_hint.support_fingers:
         out.setdefault(f, list(ix.object_geoms))
     return [(ix.fingertip_geoms[f], parts) for f, parts in out.items()]
-
-
-def press(obj: ObjectSpec, m: mujoco.MjModel, q: np.ndarray, fingers, depth: float = PRESS_DEPTH) -> np.ndarray:
-    """Servo targets that push each of ``fingers``' tips ``depth`` into the object along the
-    contact normal (one Jacobian step per finger): targets exactly at contact rest on the object
-    but would not carry it, targets inside it squeeze."""
-    d = mujoco.MjData(m)
-    ix = SceneIndex.of(m)
-    d.qpos[ix.all_qpos] = q
-    d.qpos[ix.object_qpos + 2] = resting_height(m)
-    d.qpos[ix.object_qpos + 3] = 1.0
-    mujoco.mj_kinematics(m, d)
-    mujoco.mj_comPos(m, d)
-    out = q.copy()
-    for f in fingers:
-        tip = ix.fingertip_geoms[f]
-        gap, fromto = np.inf, np.zeros(6)
-        for o in ix.object_geoms:
-            ft = np.zeros(6)
-            dist = mujoco.mj_geomDistance(m, d, tip, o, 0.05, ft)
-            if dist < gap:
-                gap, fromto = dist, ft
-        if gap > PRESS_REACH:
-            continue  # not touching: nothing to press
-        normal = _unit(fromto[3:] - fromto[:3]) * (1.0 if gap >= 0 else -1.0)
-        jacp = np.zeros((3, m.nv))
-        mujoco.mj_jac(m, d, jacp, None, fromto[:3], m.geom_bodyid[tip])
-        cols = [i for i, j in enumerate(ALL_JOINTS) if j.startswith(f.upper())]
-        dofs = [m.jnt_dofadr[m.joint(ALL_JOINTS[i]).id] for i in cols]
-        out[cols] += np.linalg.pinv(jacp[:, dofs]) @ (normal * (depth + max(gap, 0.0)))
-    return np.clip(out, ix.all_range[:, 0], ix.all_range[:, 1])
 
 
 def _table_geom(m: mujoco.MjModel) -> int:
