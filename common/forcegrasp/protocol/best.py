@@ -12,7 +12,7 @@ import time
 from dataclasses import asdict, dataclass
 
 from forcegrasp.policy_file import PolicyFileError, load_policy_bytes
-from forcegrasp.protocol.wire import DEFAULT_LIMITS, PROTOCOL_VERSION, R_FIELD, T_BEST, Limits, ProtocolError, Reader, pack, unpack
+from forcegrasp.protocol.wire import DEFAULT_LIMITS, PROTOCOL_VERSION, R_FIELD, T_BEST, Limits, ProtocolError, Reader, checked, unpack
 
 _SHA_LEN = 64
 
@@ -53,9 +53,7 @@ class BestPolicy:
 def encode_best(b: BestPolicy, limits: Limits = DEFAULT_LIMITS) -> bytes:
     msg = {"v": PROTOCOL_VERSION, "t": T_BEST, **{k: v for k, v in asdict(b).items()}}
     msg["time"] = float(msg["time"] or time.time())
-    payload = pack(msg)
-    decode_best(payload, limits=limits)  # what we send, a receiver accepts
-    return payload
+    return checked(msg, decode_best, limits)
 
 
 def decode_best(payload, *, limits: Limits = DEFAULT_LIMITS) -> BestPolicy:

@@ -41,7 +41,7 @@ class Keys:
 
     @property
     def progress(self) -> str:
-        """Learner's ingestion headroom (Stats message, ~20 Hz): actors pause while it is used up,
+        """Learner's headroom and acknowledgements (Progress message, ~20 Hz): actors pause while it is used up,
         which holds the update-to-data ratio (the rate limiter)."""
         return f"{self.prefix}/progress"
 

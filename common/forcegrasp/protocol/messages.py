@@ -14,7 +14,7 @@ import numpy as np
 
 from forcegrasp.protocol.wire import (
     DEFAULT_LIMITS, FLAGS, FLOAT32, INT64_MAX, PROTOCOL_VERSION, R_FIELD, R_MISSING, R_OVERSIZE, R_SHAPE, T_CHECKPOINT, T_PROGRESS, T_STATS,
-    T_TRANSITIONS, T_WEIGHTS, WEIGHT_DTYPES, Limits, ProtocolError, Reader, check_values, decode_array,
+    T_TRANSITIONS, T_WEIGHTS, WEIGHT_DTYPES, Limits, ProtocolError, Reader, check_values, checked, decode_array,
     encode_array, is_int, json_leaf, number_leaf, numbers_to_wire, pack, unpack, validate_name,
 )
 
@@ -222,9 +222,7 @@ def encode_weights(w: Weights, limits: Limits = DEFAULT_LIMITS) -> bytes:
         "step": int(w.step), "time": float(w.time),
         "params": {str(k): encode_array(v) for k, v in w.params.items()}, "meta": w.meta,
     }
-    payload = pack(msg)
-    decode_weights(payload, limits=limits)
-    return payload
+    return checked(msg, decode_weights, limits)
 
 
 def decode_weights(payload: Any, *, expected: Mapping[str, tuple[int, ...]] | None = None,
@@ -273,9 +271,7 @@ class Stats:
 def encode_stats(s: Stats, limits: Limits = DEFAULT_LIMITS) -> bytes:
     msg = {"v": PROTOCOL_VERSION, "t": T_STATS, "service": validate_name(s.service, "service"),
            "id": validate_name(s.id, "id"), "time": float(s.time), "values": numbers_to_wire(s.values)}
-    payload = pack(msg)
-    decode_stats(payload, limits=limits)
-    return payload
+    return checked(msg, decode_stats, limits)
 
 
 def decode_stats(payload: Any, *, limits: Limits = DEFAULT_LIMITS) -> Stats:
@@ -304,9 +300,7 @@ def encode_checkpoint(c: Checkpoint, limits: Limits = DEFAULT_LIMITS) -> bytes:
     msg = {"v": PROTOCOL_VERSION, "t": T_CHECKPOINT, "step": int(c.step), "path": str(c.path),
            "policy_version": int(c.policy_version), "time": float(c.time),
            "metrics": numbers_to_wire(c.metrics)}
-    payload = pack(msg)
-    decode_checkpoint(payload, limits=limits)
-    return payload
+    return checked(msg, decode_checkpoint, limits)
 
 
 def decode_checkpoint(payload: Any, *, limits: Limits = DEFAULT_LIMITS) -> Checkpoint:
@@ -343,9 +337,7 @@ def encode_progress(p: Progress, limits: Limits = DEFAULT_LIMITS) -> bytes:
     msg = {"v": PROTOCOL_VERSION, "t": T_PROGRESS, "ingested": int(p.ingested), "updates": int(p.updates),
            "headroom": None if p.headroom is None else float(p.headroom), "time": float(p.time),
            "acked": {validate_name(a, "actor id"): [int(e), int(s)] for a, (e, s) in p.acked.items()}}
-    payload = pack(msg)
-    decode_progress(payload, limits=limits)
-    return payload
+    return checked(msg, decode_progress, limits)
 
 
 def decode_progress(payload: Any, *, limits: Limits = DEFAULT_LIMITS) -> Progress:

@@ -135,6 +135,14 @@ def pack(obj: dict) -> bytes:
     return msgpack.packb(obj, use_bin_type=True)
 
 
+def checked(msg: dict, decode: Callable[..., Any], limits: Limits) -> bytes:
+    """``msg`` packed, after the receiver's own ``decode`` accepted it: a sender never sends what
+    its receivers would refuse."""
+    payload = pack(msg)
+    decode(payload, limits=limits)
+    return payload
+
+
 def is_int(x: Any) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
