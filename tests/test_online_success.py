@@ -1,9 +1,9 @@
 """Issue 15: with weights frozen, the success rate a real actor process reports is the policy's.
 
-The fixture is a camera policy from a 20-minute screening run (best checkpoint, step 253,888,
-36 % deterministic on 50 held-out placements, about 30 % with sampled actions): a rate away from
-0 and 1, so that a bookkeeping error (episodes counted twice, lost, or mixed across resets)
-would show.
+The fixture is a camera policy (the photographer's-grip label) from the fast recipe's first run
+on the new grasp labels (snapshot at step 92,608, 58 % deterministic on 50 held-out placements):
+a rate away from 0 and 1, so that a bookkeeping error (episodes counted twice, lost, or mixed
+across resets) would show.
 """
 
 from pathlib import Path
