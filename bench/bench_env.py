@@ -1,8 +1,11 @@
 """Env steps/s against raw ``mj_step`` throughput of the same model and frame skip, one core.
 
 The raw loop replays the very control sequence the env produced (random policy, resets
-included) with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)``, so both sides
-simulate the same contacts and the ratio isolates the env's own Python overhead.
+included) with nothing but ``d.ctrl[:] = u; mj_step(m, d, nstep=frame_skip)``, from the env's
+full simulator state after each reset (``mj_setState``), so both sides simulate the same
+trajectory and contacts and the ratio isolates the env's own Python overhead. (Restoring only
+``qpos`` with ``qvel = 0``, as before 2026-12-01, let the raw trajectory drift into other
+contacts: on the contact-rich new grasps that alone moved the ratio by 10-15 points.)
 Each repetition runs env, raw, raw, env (A-B-B-A) so a drifting machine hits both alike.
 
     python bench/bench_env.py --object mug --steps 3000 --reps 3
@@ -34,28 +37,39 @@ def run_env(env: FunctionalGraspEnv, actions: np.ndarray, seed: int):
     return elapsed, starts
 
 
+STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # everything mj_step reads: positions, velocities, warm start...
+
+
+def _state(env: FunctionalGraspEnv) -> np.ndarray:
+    out = np.empty(mujoco.mj_stateSize(env.model, STATE))
+    mujoco.mj_getState(env.model, env.data, out, STATE)
+    return out
+
+
 def record_ctrls(env: FunctionalGraspEnv, actions: np.ndarray, seed: int) -> tuple[np.ndarray, list]:
+    """The env's controls and the full simulator state after every reset: replayed from those
+    states, the raw loop simulates exactly the env's trajectory (MuJoCo is deterministic), so both
+    sides meet the same contacts."""
     ctrls, starts = [], []
     env.reset(seed=seed)
-    starts.append((0, env.data.qpos.copy()))
+    starts.append((0, _state(env)))
     for k, a in enumerate(actions):
         _, _, term, trunc, _ = env.step(a)
         ctrls.append(env.data.ctrl.copy())
         if term or trunc:
             env.reset()
-            starts.append((k + 1, env.data.qpos.copy()))
+            starts.append((k + 1, _state(env)))
     return np.array(ctrls), starts
 
 
 def run_raw(m: mujoco.MjModel, ctrls: np.ndarray, starts: list, frame_skip: int) -> float:
     d = mujoco.MjData(m)
-    resets = dict((k, q) for k, q in starts)
+    resets = dict(starts)
     t0 = time.perf_counter()
     for k in range(len(ctrls)):
-        q = resets.get(k)
-        if q is not None:
-            d.qpos[:] = q
-            d.qvel[:] = 0
+        state = resets.get(k)
+        if state is not None:
+            mujoco.mj_setState(m, d, state, STATE)
         d.ctrl[:] = ctrls[k]
         mujoco.mj_step(m, d, nstep=frame_skip)
     return time.perf_counter() - t0
