@@ -333,3 +333,42 @@ class Ranker:
 
     def on_commit(self, step: int, result: EvalResult) -> None:
         """Called after each evaluation is on disk (the service refreshes what it serves)."""
+
+    def stats(self) -> dict:
+        """The role's counters: what was scored, the latest checkpoint's and the best's success."""
+        c = self.counters
+        best = self.top.best
+        return {
+            "evaluations": c.evaluations,
+            "rank_evaluations": c.rank_evaluations,
+            "episodes": c.episodes,
+            "episodes_per_s": c.episodes / c.episode_seconds if c.episode_seconds else None,
+            "entered_top": c.entered_top,
+            "pending": len(self.pending),
+            "evaluating": self.current,
+            "last_step": self.top.last_step,
+            "skipped": c.skipped,
+            "bad_checkpoints": c.bad_checkpoints,
+            "missing_files": c.missing_files,
+            "best_step": best.step if best else None,
+            "best_score": best.rank_score if best else None,
+            "best_success_rate": best.rank_success_rate if best else None,
+            "best_episodes": best.rank_episodes if best else None,
+            "latest_step": self.last_result[0] if self.last_result else None,
+            "latest_success_rate": self.last_result[1].success_rate if self.last_result else None,
+            "latest_episodes": self.last_result[1].episodes if self.last_result else None,
+            "top_scores": {str(m.step): m.score for m in self.top.members},
+            "top_rank_scores": {str(m.step): m.rank_score for m in self.top.members},
+            "top_count": len(self.top.members),
+            "pruned_logs": c.pruned_logs,
+        }
+
+    def write_scalars(self, writer, step: int, result: EvalResult) -> None:
+        """Deterministic success of each evaluated checkpoint and of the current best, by learner
+        step, in the run's TensorBoard folder (next to the actors' online figures)."""
+        writer.add_scalar("evaluator/checkpoint_success_rate", result.success_rate, step)
+        writer.add_scalar("evaluator/checkpoint_return", result.score, step)
+        best = self.top.best
+        if best is not None:
+            writer.add_scalar("evaluator/best_success_rate", best.rank_success_rate, step)
+        writer.flush()

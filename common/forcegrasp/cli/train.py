@@ -53,13 +53,8 @@ class Evaluation(threading.Thread):
         self.ranker.on_commit = self._scalars
 
     def _scalars(self, step, result) -> None:
-        if step is None:
-            return
-        self.writer.add_scalar("evaluator/checkpoint_success_rate", result.success_rate, step)
-        self.writer.add_scalar("evaluator/checkpoint_return", result.score, step)
-        best = self.ranker.top.best
-        if best is not None:
-            self.writer.add_scalar("evaluator/best_success_rate", best.rank_success_rate, step)
+        if step is not None:
+            self.ranker.write_scalars(self.writer, step, result)
 
     def run(self) -> None:
         self.ranker.load()
@@ -69,11 +64,9 @@ class Evaluation(threading.Thread):
                 self.stop.wait(0.5)
 
     def summary(self) -> str:
-        top, last = self.ranker.top, self.ranker.last_result
-        latest = f"latest {last[1].success_rate:.0%} of {last[1].episodes} (step {last[0]})" if last else "latest -"
-        best = top.best
-        best_text = f"best {best.rank_success_rate:.0%} of {best.rank_episodes} (step {best.step})" if best else "best -"
-        return f"evaluator ({self.ranker.counters.evaluations} checkpoints): {latest}, {best_text}"
+        from forcegrasp.cli.up import evaluator_summary
+
+        return evaluator_summary(self.ranker.stats())
 
 
 def train(config, steps: int, evaluate: bool = True, log=print) -> Path:

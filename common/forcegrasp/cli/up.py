@@ -35,6 +35,15 @@ def service_commands(config_path: Path, num_actors: int, evaluator: bool = True,
     return commands
 
 
+def evaluator_summary(ev: dict) -> str:
+    """The evaluator's figures from its stats: the latest checkpoint's and the best's held-out success."""
+    latest = ("-" if ev.get("latest_success_rate") is None else
+              f"{ev['latest_success_rate']:.0%} of {ev.get('latest_episodes')} (step {ev.get('latest_step')})")
+    best = ("-" if ev.get("best_success_rate") is None else
+            f"{ev['best_success_rate']:.0%} of {ev.get('best_episodes')} (step {ev['best_step']})")
+    return f"evaluator ({ev.get('evaluations', 0)} checkpoints): latest {latest}, best {best}"
+
+
 def progress_line(stats: dict) -> str:
     """One line from the services' stats. Two success figures, labelled for what they are: the
     actors' online rate (last 100 episodes, sampled actions, weights changing under them) and the
@@ -49,11 +58,7 @@ def progress_line(stats: dict) -> str:
               if k not in ("learner", "evaluator")]
     ev = stats.get("evaluator")
     if ev is not None:
-        latest = ("-" if ev.get("latest_success_rate") is None else
-                  f"{ev['latest_success_rate']:.0%} of {ev.get('latest_episodes')} (step {ev.get('latest_step')})")
-        best = ("-" if ev.get("best_success_rate") is None else
-                f"{ev['best_success_rate']:.0%} of {ev.get('best_episodes')} (step {ev['best_step']})")
-        actors.append(f"| evaluator ({ev.get('evaluations', 0)} checkpoints): latest {latest}, best {best}")
+        actors.append(f"| {evaluator_summary(ev)}")
     return (f"steps {learner['ingested']:>9}  updates {learner['updates']:>8} ({learner['updates_per_s']:.0f}/s)  "
             f"v{learner['policy_version']}  online return(100) {'-' if ret is None else f'{ret:.1f}'}  "
             f"online success(100) {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | "

@@ -29,7 +29,6 @@ import threading
 import time
 
 from forcegrasp.config import Config, add_config_arguments, config_from_args
-from forcegrasp.evaluation import EvalResult
 from forcegrasp.protocol import Keys, ProtocolError, RejectCounter, Stats, decode_checkpoint, encode_stats
 from forcegrasp.protocol.best import BestPolicy
 from forcegrasp.ranking import Ranker, ScoreFn
@@ -61,7 +60,8 @@ class EvaluatorService(Ranker):
     def on_commit(self, step, result) -> None:
         self.refresh_snapshot()
         if step is not None:
-            self._log_scalars(step, result)
+            if self.writer is not None:
+                self.write_scalars(self.writer, step, result)
 
     def load(self) -> None:
         self._last_scan = time.monotonic()
@@ -132,18 +132,6 @@ class EvaluatorService(Ranker):
                 sha256=best_member.sha256, policy=data, time=time.time())
         self.snapshot = Snapshot.build(self.config.run.name, best, self.top.to_json(with_history=False))
 
-    def _log_scalars(self, step: int, result: EvalResult) -> None:
-        """Deterministic success of each evaluated checkpoint and of the current best, by learner
-        step, in the run's TensorBoard folder (next to the actors' online figures)."""
-        if self.writer is None:
-            return
-        self.writer.add_scalar("evaluator/checkpoint_success_rate", result.success_rate, step)
-        self.writer.add_scalar("evaluator/checkpoint_return", result.score, step)
-        best = self.top.best
-        if best is not None:
-            self.writer.add_scalar("evaluator/best_success_rate", best.rank_success_rate, step)
-        self.writer.flush()
-
     def _on_query(self, outcome: str) -> None:
         self.counters.queries += 1
         if outcome != "ok":
@@ -151,32 +139,10 @@ class EvaluatorService(Ranker):
 
     def stats(self) -> dict:
         c = self.counters
-        best = self.top.best
         return {
-            "evaluations": c.evaluations,
-            "rank_evaluations": c.rank_evaluations,
-            "episodes": c.episodes,
-            "episodes_per_s": c.episodes / c.episode_seconds if c.episode_seconds else None,
-            "entered_top": c.entered_top,
-            "pending": len(self.pending),
-            "evaluating": self.current,
-            "last_step": self.top.last_step,
-            "skipped": c.skipped,
-            "bad_checkpoints": c.bad_checkpoints,
-            "missing_files": c.missing_files,
-            "best_step": best.step if best else None,
-            "best_score": best.rank_score if best else None,
-            "best_success_rate": best.rank_success_rate if best else None,
-            "best_episodes": best.rank_episodes if best else None,
-            "latest_step": self.last_result[0] if self.last_result else None,
-            "latest_success_rate": self.last_result[1].success_rate if self.last_result else None,
-            "latest_episodes": self.last_result[1].episodes if self.last_result else None,
-            "top_scores": {str(m.step): m.score for m in self.top.members},
-            "top_rank_scores": {str(m.step): m.rank_score for m in self.top.members},
-            "top_count": len(self.top.members),
+            **super().stats(),
             "queries": c.queries,
             "bad_queries": c.bad_queries,
-            "pruned_logs": c.pruned_logs,
             "http_port": self.http.port if self.http is not None else None,
             "http_requests": dict(self.http.requests_by_status) if self.http is not None else {},
             "rejected": self.rejects.total,
