@@ -39,7 +39,8 @@ def finger_of_body(m: mujoco.MjModel, body: int) -> str | None:
     return None
 
 
-def _place(m, d, ix: SceneIndex, q, offset=(0.0, 0.0), rest_z: float | None = None) -> None:
+def place(m, d, ix: SceneIndex, q, offset=(0.0, 0.0), rest_z: float | None = None) -> None:
+    """Hand at ``q`` (servos holding it), object upright at rest at ``offset``; no kinematics run."""
     d.qpos[:] = 0
     d.qpos[ix.all_qpos] = q
     d.qpos[ix.object_qpos:ix.object_qpos + 2] = offset
@@ -92,7 +93,7 @@ def hold_check(obj: ObjectSpec, q_goal: np.ndarray, mass_scale: float = 1.0, sec
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
     q = np.asarray(q_goal, float).copy()
-    _place(m, d, ix, q, rest_z=rest_z)
+    place(m, d, ix, q, rest_z=rest_z)
     if hand_overrides:
         ctrl = np.concatenate([q[:6], q[6:]])
         for i, v in hand_overrides.items():
@@ -133,14 +134,15 @@ def pregrasp_clearance(obj: ObjectSpec, q_pre: np.ndarray, jitter: float = 0.02,
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
     palm_geoms = [g for g in ix.hand_geoms if finger_of_body(m, m.geom_bodyid[g]) == "palm"]
+    rest_z = resting_height(m)  # one settling simulation, not one per placement
     worst, worst_at = np.inf, None
     for dx, dy in itertools.product(np.linspace(-jitter, jitter, grid), repeat=2):
-        _place(m, d, ix, q_pre, (dx, dy))
+        place(m, d, ix, q_pre, (dx, dy), rest_z)
         mujoco.mj_kinematics(m, d)
         c = min(mujoco.mj_geomDistance(m, d, h, o, 0.2, None) for h in ix.hand_geoms for o in ix.object_geoms)
         if c < worst:
             worst, worst_at = c, (float(dx), float(dy))
-    _place(m, d, ix, q_pre)
+    place(m, d, ix, q_pre, rest_z=rest_z)
     mujoco.mj_kinematics(m, d)
     palm = min(mujoco.mj_geomDistance(m, d, h, o, 0.2, None) for h in palm_geoms for o in ix.object_geoms)
     return {"min_clearance_m": float(worst), "worst_offset": worst_at, "palm_distance_m": float(palm),

@@ -29,6 +29,7 @@ import mujoco
 import numpy as np
 from mujoco import minimize
 
+from forcegrasp.label_checks import place
 from forcegrasp.labels import Grasp, GraspLabel
 from forcegrasp.objects import ObjectSpec
 from forcegrasp.scene import (
@@ -246,9 +247,7 @@ def goal_palm_of(m: mujoco.MjModel, q_goal: np.ndarray) -> np.ndarray:
     """Palm centre relative to the object (at the origin) at the goal grasp: the paper's p_g."""
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
-    d.qpos[ix.all_qpos] = q_goal
-    d.qpos[ix.object_qpos + 2] = resting_height(m)
-    d.qpos[ix.object_qpos + 3] = 1.0
+    place(m, d, ix, q_goal)
     mujoco.mj_kinematics(m, d)
     return d.site_xpos[ix.palm_site] - d.xpos[ix.object_body]
 
@@ -277,10 +276,7 @@ def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter
     chosen = None
     for opening, retreat, direction, q0 in pregrasp_candidates(m, q_goal, obj.grasp_hint.approach,
                                                                    obj.grasp_hint.keep_shape):
-        d.qpos[:] = 0
-        d.qpos[ix.all_qpos] = q0
-        d.qpos[ix.object_qpos + 2] = rest_z
-        d.qpos[ix.object_qpos + 3] = 1.0
+        place(m, d, ix, q0, rest_z=rest_z)
         mujoco.mj_kinematics(m, d)
         what = f"  {direction:>11}, retreat {retreat * 100:.0f} cm, opening {opening:.1f}:"
         if hand_object_clearance(m, d, ix) < 0.005:
