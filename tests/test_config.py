@@ -115,10 +115,16 @@ def test_unknown_key_and_section_in_file(tmp_path):
     ("network.mode=mesh", "network.mode"),
     ("run.name=bad/name", "run.name"),
     ("run.name=a*", "run.name"),
+    ("env.object=drill", "env.object"),
 ])
 def test_bad_values_are_named(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         load_config(env={}, overrides=[override])
+
+
+def test_unknown_object_lists_the_valid_ones():
+    with pytest.raises(ConfigError, match="unknown object 'drill'; valid objects: camera, mug, power_drill"):
+        load_config(env={}, overrides=["env.object=drill"])
 
 
 def test_bad_types_in_file(tmp_path):

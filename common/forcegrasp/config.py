@@ -344,6 +344,13 @@ def _check_cross_fields(config: Config) -> None:
         validate_name(config.run.name, "run name")
     except ProtocolError as exc:
         raise ConfigError(f"run.name: {exc.detail}") from None
+    from forcegrasp.objects import list_objects
+
+    if config.env.object not in list_objects():
+        # Fail here, before any service starts: a cluster of actors that each die on an unknown
+        # object and are restarted forever says less than one line.
+        raise ConfigError(f"env.object: unknown object {config.env.object!r}; valid objects: "
+                          f"{', '.join(list_objects())}")
     if not config.network.learner_listen:
         raise ConfigError("network.learner_listen: at least one endpoint is needed")
     for key in ("learner_listen", "connect", "listen"):
