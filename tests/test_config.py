@@ -13,9 +13,9 @@ from forcegrasp.config import (
     ConfigError,
     add_config_arguments,
     config_from_args,
-    default_config_toml,
     load_config,
 )
+from forcegrasp.config_toml import default_config_toml
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -193,3 +193,24 @@ def test_actor_ema_hands_out_the_polyak_average_and_checkpoints_it(tmp_path):
     sac.save_checkpoint(tmp_path / "c.safetensors")
     back, _ = SAC.load_checkpoint(tmp_path / "c.safetensors")
     assert all(torch.equal(v, back.deployed_actor.state_dict()[k]) for k, v in avg.items())
+
+
+def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures():
+    """Scripted demonstrations told the true offset: they reach the goal (the success bonus is in
+    the batch), each env plays its quota and then acts for itself, and the policy's own episode
+    counts ignore them."""
+    from forcegrasp.acting import Actor
+    from forcegrasp.config import load_config
+
+    config = load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=2", "actor.demo_episodes=1",
+                                            "actor.publish_batch=100000", "learner.recipe=fast"])
+    actor = Actor(config, "a", seed=3)
+    for _ in range(200):  # a demonstration ends well inside 200 steps; then random actions
+        actor.step()
+    batch = actor._package()
+    assert actor.demo_episodes == 2 and actor._demo == [None, None]
+    assert actor.demo_successes == 2  # the mug's told approach succeeds on every placement tried
+    assert actor.episodes == 0 or actor.successes < actor.episodes  # random actions don't grasp
+    assert (batch.reward > 500).sum() == 2 and batch.terminated.sum() >= 2  # two bonuses, two ends
+    assert batch.privileged.shape == (400, 14)
+    assert batch.episode_successes is None or not batch.episode_successes.any()

@@ -3,8 +3,13 @@ transitions packed into batches for the learner. No network: the actor service s
 over Zenoh and feeds it the learner's broadcasts; ``forcegrasp train`` hands them to a learner in
 the same process.
 
-- Acts uniformly at random for its first ``actor.random_steps`` env steps (and until it has
-  weights), then samples from its policy; one batched forward pass serves all its envs.
+- With ``actor.demo_episodes`` each env first plays that many episodes of the scripted approach
+  (`forcegrasp.scripted`) *told the true object offset*: demonstrations that put the success
+  bonus into the replay buffer from the start (prior data, as in RLPD). The offset is simulator
+  knowledge the deployed policy never sees; the demonstrations are counted apart from the
+  policy's own episodes (``demo_episodes`` in :meth:`stats`, not in the online success).
+- Otherwise acts uniformly at random for its first ``actor.random_steps`` env steps (and until it
+  has weights), then samples from its policy; one batched forward pass serves all its envs.
 - Finished episodes reset at once; the transition keeps the true last observation, with
   ``terminated`` marking real terminal states.
 - With the learner's ``n_step`` > 1 transitions leave through per-env n-step accumulators, with
@@ -24,6 +29,7 @@ from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.protocol import TransitionBatch
 from forcegrasp.runtime import make_env
 from forcegrasp.recipes import sac_config
+from forcegrasp.scripted import ScriptedApproach
 
 
 class Actor:
@@ -51,6 +57,16 @@ class Actor:
         self._ended: list[tuple[float, int, bool]] = []
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, dtype=np.int64)
+        self._demos_left = [config.actor.demo_episodes] * n
+        self._demo = [self._new_demo(i) for i in range(n)]
+        self.demo_episodes = self.demo_successes = 0
+
+    def _new_demo(self, i: int) -> ScriptedApproach | None:
+        """The scripted approach for env `i`'s new episode while it still owes demonstrations."""
+        if self._demos_left[i] <= 0:
+            return None
+        env = self.envs[i]
+        return ScriptedApproach(env, believed_offset=env.offset)
 
     def update(self, params: dict[str, np.ndarray], meta: PolicyMetadata, version: int) -> bool:
         """Swap in a newer policy; False for one older than ours. Raises ValueError for a policy
@@ -65,8 +81,15 @@ class Actor:
 
     def act(self) -> np.ndarray:
         if self.steps < self.config.actor.random_steps or self.policy is None:
-            return self.rng.uniform(-1.0, 1.0, (len(self.envs), self.act_dim)).astype(np.float32)
-        return self.policy(self.obs, deterministic=False).astype(np.float32)
+            actions = self.rng.uniform(-1.0, 1.0, (len(self.envs), self.act_dim)).astype(np.float32)
+        else:
+            actions = self.policy(self.obs, deterministic=False).astype(np.float32)
+        noise = self.config.actor.demo_noise
+        for i, demo in enumerate(self._demo):
+            if demo is not None:
+                a = demo() + (self.rng.normal(0.0, noise, self.act_dim) if noise > 0 else 0.0)
+                actions[i] = np.clip(a, -1.0, 1.0)
+        return actions
 
     def step(self) -> TransitionBatch | None:
         """One step of every env; returns a batch once ``actor.publish_batch`` transitions wait."""
@@ -80,11 +103,17 @@ class Actor:
             self._returns[i] += reward
             self._lengths[i] += 1
             if terminated or truncated:
-                self._ended.append((self._returns[i], int(self._lengths[i]), bool(info["success"])))
-                self.episodes += 1
-                self.successes += bool(info["success"])
+                if self._demo[i] is not None:
+                    self._demos_left[i] -= 1
+                    self.demo_episodes += 1
+                    self.demo_successes += bool(info["success"])
+                else:
+                    self._ended.append((self._returns[i], int(self._lengths[i]), bool(info["success"])))
+                    self.episodes += 1
+                    self.successes += bool(info["success"])
                 self._returns[i], self._lengths[i] = 0.0, 0
                 next_obs, _ = env.reset()
+                self._demo[i] = self._new_demo(i)
                 if self.privileged:
                     next_priv = env.privileged_state()
             self.obs[i] = next_obs
@@ -118,7 +147,8 @@ class Actor:
 
     def stats(self) -> dict:
         return {"steps": self.steps, "episodes": self.episodes, "successes": self.successes,
-                "policy_version": self.policy_version}
+                "demo_episodes": self.demo_episodes,
+                "demo_successes": self.demo_successes, "policy_version": self.policy_version}
 
     def close(self) -> None:
         for env in self.envs:

@@ -3,7 +3,7 @@
 All services (learner, actors, evaluator, launcher) read the same :class:`Config`, so a run is
 described in one place.  Values come from, in increasing precedence:
 
-1. the dataclass defaults below (printed by :func:`default_config_toml`, also ``configs/default.toml``);
+1. the dataclass defaults below (printed by :func:`forcegrasp.config_toml.default_config_toml`, also ``configs/default.toml``);
 2. a TOML file (``--config PATH`` or ``FORCEGRASP_CONFIG``);
 3. environment variables ``FORCEGRASP_<SECTION>_<KEY>`` (e.g. ``FORCEGRASP_ACTOR_ENVS_PER_ACTOR=4``;
    ``FORCEGRASP_LEARNER_SAC_BATCH_SIZE=128`` for an entry of ``[learner.sac]``);
@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 import os
 import tomllib
@@ -72,6 +71,9 @@ class ActorConfig:
     num_actors: int = _f(2, "actor processes started by 'forcegrasp up'", min=0)
     envs_per_actor: int = _f(8, "environments stepped together in one actor process", min=1)
     random_steps: int = _f(1000, "uniformly random actions for this many env steps per actor", min=0)
+    demo_episodes: int = _f(0, "episodes per env of the scripted approach told the true object offset, "
+                               "played first: demonstrations for the replay buffer (0: none)", min=0)
+    demo_noise: float = _f(0.0, "std of Gaussian noise on the demonstrations' actions (action units)", min=0.0)
     publish_batch: int = _f(64, "transitions per published TransitionBatch", min=1)
     max_buffered_batches: int = _f(2000, "batches kept while the learner is away (oldest dropped)", min=1)
 
@@ -150,7 +152,9 @@ class Config:
 
     def to_toml(self) -> str:
         """The resolved configuration, e.g. to record next to a run's checkpoints."""
-        return _emit_toml(self, comments=False)
+        from forcegrasp.config_toml import emit_toml
+
+        return emit_toml(self, comments=False)
 
 
 SECTIONS: dict[str, type] = {f.name: f.default_factory for f in dataclasses.fields(Config)}  # type: ignore[misc]
@@ -357,65 +361,6 @@ def _check_cross_fields(config: Config) -> None:
         for endpoint in getattr(config.network, key):
             if "/" not in endpoint:
                 raise ConfigError(f"network.{key}: {endpoint!r} is not an endpoint like tcp/127.0.0.1:7447")
-
-
-# --------------------------------------------------------------------------------------------
-# TOML output
-# --------------------------------------------------------------------------------------------
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (int, float)):
-        return repr(value)
-    if isinstance(value, str):
-        return json.dumps(value)  # JSON string escapes are valid TOML basic strings
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {value!r} as TOML")
-
-
-def _emit_toml(config: Config, *, comments: bool) -> str:
-    lines: list[str] = []
-    for section in SECTIONS:
-        table = getattr(config, section)
-        if comments:
-            lines.append(f"# {type(table).__doc__.strip().splitlines()[0]}")
-        lines.append(f"[{section}]")
-        nested = []
-        for f in dataclasses.fields(table):
-            value = getattr(table, f.name)
-            if isinstance(value, dict):
-                nested.append((f, value))
-                continue
-            if comments:
-                lines.append(f"# {f.metadata['help']}")
-            lines.append(f"{f.name} = {_toml_value(value)}")
-        for f, value in nested:
-            lines.append("")
-            if comments:
-                lines.append(f"# {f.metadata['help']}")
-            lines.append(f"[{section}.{f.name}]")
-            if comments and not value and section == "learner":
-                lines.extend(_SAC_EXAMPLE)
-            lines.extend(f"{k} = {_toml_value(v)}" for k, v in value.items())
-        lines.append("")
-    return "\n".join(lines)
-
-
-_SAC_EXAMPLE = [
-    "# updates_per_step = 1.0   # update-to-data ratio",
-    "# batch_size = 256",
-    "# learning_starts = 1000",
-    "# gamma = 0.99",
-]
-
-
-def default_config_toml() -> str:
-    """The defaults as a commented TOML file (what ``configs/default.toml`` contains)."""
-    header = ("# ForceGrasp configuration: shared by the learner, the actors and the evaluator.\n"
-              "# Override any key with FORCEGRASP_<SECTION>_<KEY>=value or --set section.key=value.\n\n")
-    return header + _emit_toml(Config(), comments=True)
 
 
 # --------------------------------------------------------------------------------------------
