@@ -551,6 +551,50 @@ def test_http_serves_best_and_top_and_refuses_everything_else(http_server):
         fetch_best_http("http://127.0.0.1:9", timeout=2)
 
 
+def test_http_bounds_bodies_rates_and_connections(tmp_path, monkeypatch):
+    """A body is refused, a flood of requests from one address is cut to its rate, and idle
+    connections past the limit are closed without taking a thread; service resumes after."""
+    import socket
+    import time
+
+    from forcegrasp_evaluator import endpoint
+
+    monkeypatch.setattr(endpoint, "MAX_CONNECTIONS", 4)
+    config = tiny_config(tmp_path)
+    snap = Snapshot.build(config.run.name, None, {"members": []})
+    server = EvaluatorHTTPServer("127.0.0.1", 0, lambda: snap).start()
+    try:
+        port = server.port
+        status, _, body = request(port, "GET", "/top", body=b"x" * 100)
+        assert status == 413 and "no body" in json.loads(body)["error"]
+        statuses = [request(port, "GET", "/top")[0] for _ in range(endpoint.BURST + 20)]
+        assert statuses.count(200) >= endpoint.BURST - 2 and statuses.count(429) >= 15, statuses
+        status, headers, _ = request(port, "GET", "/top")
+        assert status == 429 and headers["Retry-After"] == "1"
+        time.sleep(1.0)
+        assert request(port, "GET", "/top")[0] == 200  # tokens came back
+        idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(4)]  # hold every slot
+        try:
+            time.sleep(0.3)
+            with pytest.raises((ConnectionError, http.client.HTTPException, OSError)):
+                request(port, "GET", "/top")
+        finally:
+            for sock in idle:
+                sock.close()
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline:
+            try:
+                if request(port, "GET", "/top")[0] == 200:
+                    break
+            except (ConnectionError, http.client.HTTPException, OSError):
+                time.sleep(0.2)
+        else:
+            raise AssertionError("the server did not recover after the idle connections closed")
+        assert server.requests_by_status["413"] == 1 and server.requests_by_status["503"] >= 1
+    finally:
+        server.stop()
+
+
 @pytest.mark.parametrize("keep", ["top", "all"])
 def test_episode_logs_are_kept_for_the_top_k_and_the_latest(tmp_path, keep):
     """Real rollouts and MCAP files: with keep_episode_logs="top" the logs of a checkpoint go once

@@ -87,7 +87,10 @@ class NetworkConfig:
     connect: list[str] = _f([], "endpoints other services connect to (empty: learner_listen)")
     listen: list[str] = _f(["tcp/127.0.0.1:0"], "endpoints other services listen on (port 0: any), so peers mesh")
     lease_ms: int = _f(3000, "Zenoh lease: a hung (not killed) peer counts as gone after this", min=100)
-    zenoh_config: str = _f("", "optional Zenoh JSON5 file applied first (TLS, access control)")
+    zenoh_config: str = _f("", "optional Zenoh JSON5 file applied first (settings ForceGrasp does not set)")
+    credentials: str = _f("", "folder from 'forcegrasp certs DIR' (DIR, or one identity's DIR/<identity>): TLS, "
+                              "user/password and the learner's access control; endpoints must be tls/ (docs/security.md)")
+    mutual_tls: bool = _f(True, "with credentials: every service shows its certificate, not only the learner")
 
     def connect_endpoints(self) -> list[str]:
         """Where non-learner services connect: ``connect`` or the learner's listen endpoints.
@@ -361,6 +364,10 @@ def _check_cross_fields(config: Config) -> None:
         for endpoint in getattr(config.network, key):
             if "/" not in endpoint:
                 raise ConfigError(f"network.{key}: {endpoint!r} is not an endpoint like tcp/127.0.0.1:7447")
+    if config.network.credentials:
+        plain = [e for e in (*config.network.learner_listen, *config.network.connect) if not e.startswith("tls/")]
+        if plain:  # a credentials folder with a tcp/ endpoint would send the passwords in the clear
+            raise ConfigError(f"network.credentials is set, so endpoints must be tls/HOST:PORT, not {', '.join(plain)}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,15 +16,31 @@ from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.transport import open_session
 
 
-def open_service_session(config: Config, service: str) -> zenoh.Session:
-    """The learner listens on its endpoints; every other service connects to it (and listens)."""
-    listen, connect = config.network.endpoints_for(service)
+def open_service_session(config: Config, service: str, identity: str | None = None,
+                         connect_timeout_ms: int = -1) -> zenoh.Session:
+    """The learner listens on its endpoints; every other service connects to it (and listens).
+
+    With ``network.credentials`` (`forcegrasp.security`) the learner is a TLS router with access
+    control and the others its clients, as `identity` (default: the service's name; an actor's
+    is its id up to the first '.', so ``actor-3.host7`` speaks as ``actor-3``)."""
+    net = config.network
+    listen, connect = net.endpoints_for(service)
+    extra = None
+    mode = net.mode
+    if net.credentials:
+        from forcegrasp.security import credentials_folder, session_settings
+
+        name = identity or ("client" if service == "monitor" else service)
+        extra = session_settings(credentials_folder(net.credentials, name), service, config.run.name,
+                                 mutual_tls=net.mutual_tls, connect_timeout_ms=connect_timeout_ms)
+        mode = extra.pop("mode")
     return open_session(
         listen,
         connect,
-        mode=config.network.mode,
-        lease_ms=config.network.lease_ms,
-        config_file=config.network.zenoh_config or None,
+        mode=mode,
+        lease_ms=net.lease_ms,
+        config_file=net.zenoh_config or None,
+        extra=extra,
     )
 
 

@@ -78,6 +78,21 @@ def cmd_objects(args) -> int:
     return 0
 
 
+def cmd_certs(args) -> int:
+    from forcegrasp.certs import CertsError, make_credentials
+
+    try:
+        written = make_credentials(args.dir, actors=args.actors, hosts=tuple(args.host), add=tuple(args.add),
+                                   days=args.days)
+    except CertsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.dir}: wrote {', '.join(written) or 'nothing new'} (CA: {args.dir}/ca.pem; keep ca-key.pem here)")
+    print(f"  run a service with --set network.credentials={args.dir} and tls/ endpoints (docs/security.md);")
+    print(f"  an actor on a spare machine needs only {args.dir}/actor-<id>/")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="forcegrasp", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -96,6 +111,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("picture", help="render the labelled grasps of objects to docs/grasps/")
     p.add_argument("objects", nargs="*", help="object names (default: all)")
     p.set_defaults(func=cmd_picture)
+
+    p = sub.add_parser("certs", help="make a development CA and credentials per service for a secure cluster")
+    p.add_argument("dir", help="output folder (an existing CA there is reused; existing identities are kept)")
+    p.add_argument("--actors", type=int, default=2, help="actor identities actor-0 ... actor-<N-1>")
+    p.add_argument("--host", action="append", default=[], help="extra host name or IP the learner is reached at")
+    p.add_argument("--add", action="append", default=[], help="one more identity, e.g. actor-7")
+    p.add_argument("--days", type=int, default=365, help="validity of the certificates")
+    p.set_defaults(func=cmd_certs)
 
     p = sub.add_parser("objects", help="list the objects")
     p.set_defaults(func=cmd_objects)

@@ -102,7 +102,7 @@ class ActorService(Actor):
 
     # ------------------------------------------------------------------ service loop
     def run(self, stop) -> None:
-        session = open_service_session(self.config, "actor")
+        session = open_service_session(self.config, "actor", identity=self.actor_id)
         try:
             keys = self.keys
             token = declare_token(session, keys.alive("actor", self.actor_id))

@@ -57,7 +57,13 @@ def _fetch_over_zenoh(config, timeout: float):
     from forcegrasp_evaluator.endpoint import BestFetchError, fetch_best_zenoh
     from forcegrasp.transport import close_session, wait_for_peers
 
-    session = open_service_session(config, "client")
+    import zenoh
+
+    try:  # with credentials a client session waits for the learner's router: give up after the timeout
+        session = open_service_session(config, "client", connect_timeout_ms=int(min(timeout, 5.0) * 1000))
+    except zenoh.ZError:
+        raise BestFetchError(f"could not reach the cluster at {', '.join(config.network.connect_endpoints())} "
+                             "(is it running? are the credentials right?)") from None
     try:
         if not wait_for_peers(session, 1, timeout=min(timeout, 5.0)):
             raise BestFetchError(f"could not reach the cluster at {', '.join(config.network.connect_endpoints())} "

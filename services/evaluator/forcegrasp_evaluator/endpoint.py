@@ -21,6 +21,11 @@ request can never name a file: no path is ever mapped to the disk. Any other pat
 path with ``..``, ``//``, backslashes or percent-encoding a 404 that says why, any other method a
 405, a query other than ``?run=<this run>`` a 400 or 404; every error body is JSON
 ``{"error": ...}``. ``?run=NAME`` lets a client check it talks to the right run.
+
+Bounds: a request with a body is a 413 (nothing here takes one; http.server already caps the
+request line at 64 KiB and the headers at 100); each client address gets ``RATE_PER_S`` requests
+a second with bursts of ``BURST`` (then 429 with ``Retry-After``); at most ``MAX_CONNECTIONS``
+connections are served at once, the others are closed unanswered. All counted by status.
 """
 
 from __future__ import annotations
@@ -119,6 +124,11 @@ ROUTES = {
 }
 
 
+RATE_PER_S = 20.0
+BURST = 40
+MAX_CONNECTIONS = 32
+
+
 class _Handler(BaseHTTPRequestHandler):
     server: "EvaluatorHTTPServer"
     server_version = "forcegrasp-evaluator"
@@ -176,6 +186,15 @@ class _Handler(BaseHTTPRequestHandler):
         raise AttributeError(name)
 
     def _route(self) -> None:
+        if not self.server.allow(self.client_address[0]):
+            self.close_connection = True
+            self._error(429, f"too many requests: at most {RATE_PER_S:g} a second per client", headers={"Retry-After": "1"})
+            return
+        length = self.headers.get("Content-Length", "0").strip() or "0"
+        if not length.isdigit() or int(length) > 0 or self.headers.get("Transfer-Encoding"):
+            self.close_connection = True
+            self._error(413, "requests here have no body")
+            return
         raw = self.path
         path, _, query = raw.partition("?")
         if not path.startswith("/") or "%" in path or "\\" in path or "//" in path \
@@ -233,6 +252,37 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
         self.requests_by_status: dict[str, int] = {}
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
+        self._buckets: dict[str, tuple[float, float]] = {}  # client address -> (tokens, time)
+        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+
+    def allow(self, client: str) -> bool:
+        """Token bucket per client address (`RATE_PER_S`, `BURST`)."""
+        now = time.monotonic()
+        with self._lock:
+            if len(self._buckets) > 4096:  # forget idle clients: the table stays bounded
+                self._buckets = {k: v for k, v in self._buckets.items() if now - v[1] < 10.0}
+            tokens, last = self._buckets.get(client, (float(BURST), now))
+            tokens = min(float(BURST), tokens + (now - last) * RATE_PER_S)
+            ok = tokens >= 1.0
+            self._buckets[client] = (tokens - 1.0 if ok else tokens, now)
+            return ok
+
+    def process_request(self, request, client_address):
+        if not self._slots.acquire(blocking=False):  # every slot busy: close, do not queue a thread
+            self.count(503)
+            self.shutdown_request(request)
+            return
+        try:
+            super().process_request(request, client_address)
+        except Exception:
+            self._slots.release()
+            raise
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            self._slots.release()
 
     @property
     def port(self) -> int:
