@@ -338,3 +338,56 @@ def test_dockerignore_keeps_runs_and_caches_out():
     for rel in ("runs/mug/checkpoint.safetensors", ".git/HEAD", "common/__pycache__/env.cpython-311.pyc",
                 "forcegrasp.egg-info/PKG-INFO"):
         assert dockerignored(rel), f"{rel} would be sent to the Docker build"
+
+
+# --------------------------------------------------------------------------------------------
+# compose.secure.yaml (the secure profile, docs/security.md)
+# --------------------------------------------------------------------------------------------
+
+def secure_services() -> dict:
+    """compose.yaml with compose.secure.yaml over it: mappings merge, lists and scalars of the
+    override replace (environment merges key by key, as compose does)."""
+    with open(REPO / "compose.secure.yaml") as f:
+        override = yaml.safe_load(f)["services"]
+    merged = {}
+    for name, svc in services().items():
+        out = dict(svc)
+        for key, value in override.get(name, {}).items():
+            if key == "environment":
+                out[key] = {**(svc.get(key) or {}), **value}
+            elif key == "volumes":
+                out[key] = list(svc.get(key) or []) + list(value)
+            else:
+                out[key] = value
+        merged[name] = out
+    return merged
+
+
+def test_secure_profile_gives_every_service_credentials_and_tls(tmp_path):
+    from forcegrasp.certs import make_credentials
+    from forcegrasp.security import credentials_folder, session_settings
+
+    creds = tmp_path / "creds"
+    make_credentials(creds, actors=1)
+    svcs = secure_services()
+    for name in SERVICE_NAMES:
+        env = {k: v for k, v in environment(svcs[name]).items() if k.startswith(ENV_PREFIX)}
+        assert env["FORCEGRASP_NETWORK_CREDENTIALS"] == "/creds"
+        assert "./creds:/creds:ro" in svcs[name]["volumes"]
+        config = load_config(env={**env, "FORCEGRASP_NETWORK_CREDENTIALS": str(creds)})
+        listen, connect = config.network.endpoints_for(name)
+        assert all(e.startswith("tls/") for e in listen + connect), (name, listen, connect)
+        if name != "learner":
+            assert connect == [f"tls/learner:{LEARNER_PORT}"]  # "learner" is in the learner's certificate
+    proc, args = run_in_shim(container_argv(svcs["actor"]), tmp_path / "shim", hostname="c0ffee123456")
+    assert proc.returncode == 0, proc.stderr
+    actor_id = dict(zip(args[1::2], args[2::2]))["--id"]
+    assert actor_id == "actor-0.c0ffee123456"
+    settings = session_settings(credentials_folder(creds, actor_id), "actor", "mug")
+    assert settings["mode"] == "client" and settings["transport/auth/usrpwd/user"] == "actor-0"
+    assert session_settings(credentials_folder(creds, "learner"), "learner", "mug")["access_control"]["enabled"]
+
+
+def test_plain_profile_publishes_the_learner_on_loopback_only():
+    (port,) = services()["learner"]["ports"]
+    assert interpolate(str(port)) == f"127.0.0.1:{LEARNER_PORT}:{LEARNER_PORT}"

@@ -105,6 +105,8 @@ class NetworkConfig:
         """``(listen, connect)`` for a service: the learner listens, the others connect."""
         if service == "learner":
             return list(self.learner_listen), []
+        if self.credentials:  # the secure hub: clients of the learner's router listen on nothing
+            return [], self.connect_endpoints()
         return list(self.listen), self.connect_endpoints()
 
 
@@ -365,7 +367,8 @@ def _check_cross_fields(config: Config) -> None:
             if "/" not in endpoint:
                 raise ConfigError(f"network.{key}: {endpoint!r} is not an endpoint like tcp/127.0.0.1:7447")
     if config.network.credentials:
-        plain = [e for e in (*config.network.learner_listen, *config.network.connect) if not e.startswith("tls/")]
+        used = config.network.connect_endpoints()  # the learner's own listen is checked as it opens
+        plain = [e for e in used if not e.startswith("tls/")]
         if plain:  # a credentials folder with a tcp/ endpoint would send the passwords in the clear
             raise ConfigError(f"network.credentials is set, so endpoints must be tls/HOST:PORT, not {', '.join(plain)}")
 

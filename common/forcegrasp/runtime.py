@@ -10,7 +10,7 @@ import threading
 
 import zenoh
 
-from forcegrasp.config import Config
+from forcegrasp.config import Config, ConfigError
 from forcegrasp import task
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.transport import open_session
@@ -30,6 +30,9 @@ def open_service_session(config: Config, service: str, identity: str | None = No
     if net.credentials:
         from forcegrasp.security import credentials_folder, session_settings
 
+        plain = [e for e in listen + connect if not e.startswith("tls/")]
+        if plain:
+            raise ConfigError(f"network.credentials is set, so endpoints must be tls/HOST:PORT, not {', '.join(plain)}")
         name = identity or ("client" if service == "monitor" else service)
         extra = session_settings(credentials_folder(net.credentials, name), service, config.run.name,
                                  mutual_tls=net.mutual_tls, connect_timeout_ms=connect_timeout_ms)
