@@ -319,6 +319,14 @@ class FunctionalGraspEnv(gym.Env):
             out[13] = float(np.isin(other, ix.hand_geoms).any())
         return out
 
+    def palm_position(self) -> np.ndarray:
+        """The palm centre in the world (m), a copy: for trajectory plots, never observed."""
+        return self._palm_pos.copy()
+
+    def object_position(self) -> np.ndarray:
+        """The object's origin in the world (m), a copy: for trajectory plots, never observed."""
+        return self._object_pos.copy()
+
     def goal_base_for_offset(self, offset) -> np.ndarray:
         """Goal base joint values for an object displaced by (dx, dy): what an oracle would aim at."""
         shift = self.slides.T @ np.array([offset[0], offset[1], 0.0])

@@ -142,6 +142,8 @@ TOOLS = {
     "experiment": ("forcegrasp.cli.experiment", "train one configuration for a wall-clock budget, test it at fixed marks"),
     "online-check": ("forcegrasp.cli.online_check", "does a frozen policy's online success match its offline tests?"),
     "eval": ("forcegrasp.cli.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
+    "ship": ("forcegrasp.cli.ship", "copy an experiment's picked policy into assets/policies/ with its record"),
+    "report": ("forcegrasp.cli.report", "the paper's experiments on the shipped policies: docs/results.md and figures"),
 }
 
 

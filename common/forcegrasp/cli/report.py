@@ -1,0 +1,293 @@
+"""``forcegrasp report``: the paper's experiments on the shipped policies, as docs/results.md and PNGs.
+
+Needs nothing but ``assets/policies/`` (no run folder): every policy there is tested on the
+held-out ``"test"`` placements (success with 95 % intervals, the adaptation map), at 1x and 0.5x
+mass with the 0.03 m tolerance, under joint-torque noise from 0 to 1 N·m, and on the paper's
+three Fig. 3 placements (palm and object x against time); one successful grasp per object is
+rendered as a strip. ``--quick`` runs reduced trial counts (CI); the default is the full protocol.
+Writes ``OUT/results.md``, ``OUT/results.json`` and ``OUT/results/*.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+from forcegrasp.report import (FIG3_OFFSETS, MASSES, NOISE_LEVELS, PAPER, POLICIES_DIR, PROTOCOLS, run_experiments,
+                               shipped_policies, summarise)
+
+OBJECT_ORDER = ("spray_bottle", "power_drill", "mug", "camera")
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _pooled(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> tuple[int, int] | None:
+    """Successes and episodes over every seed of one object and arm."""
+    rows = [r for r in summary.values() if r["object"] == obj and r["force_feedback"] == ff and value in r[kind]]
+    if not rows:
+        return None
+    return sum(r[kind][value]["successes"] for r in rows), sum(r[kind][value]["episodes"] for r in rows)
+
+
+def fig_force_feedback(summary: dict, objects: list[str], out: Path) -> Path:
+    from forcegrasp.report import wilson
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    for j, (ff, colour) in enumerate(((True, "tab:blue"), (False, "tab:orange"))):
+        for i, obj in enumerate(objects):
+            pooled = _pooled(summary, obj, ff, "held_out")
+            if pooled is None:
+                ax.text(i + (j - 0.5) * 0.36, 3, "not\ntrained", ha="center", fontsize=7, color=colour)
+                continue
+            k, n = pooled
+            lo, hi = wilson(k, n)
+            ax.bar(i + (j - 0.5) * 0.36, 100 * k / n, 0.34, color=colour, label=None if i else
+                   ("with force feedback" if ff else "without force feedback"))
+            ax.errorbar(i + (j - 0.5) * 0.36, 100 * k / n, yerr=[[100 * (k / n - lo)], [100 * (hi - k / n)]],
+                        color="k", capsize=3, lw=1)
+            for r in summary.values():  # each seed as a dot
+                if r["object"] == obj and r["force_feedback"] == ff:
+                    ax.plot(i + (j - 0.5) * 0.36, 100 * r["held_out"][""]["rate"], "k.", ms=4)
+    ax.axhline(90, color="grey", ls=":", lw=1)
+    ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="held-out success (%)", ylim=(0, 105),
+           title="Success with and without force feedback (95 % intervals; dots: seeds)")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def fig_adaptation(policies, results: dict, out: Path) -> Path:
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(policies), figsize=(2.6 * len(policies), 2.9), squeeze=False)
+    for ax, s in zip(axes[0], policies):
+        eps = results[s.name]["held_out"][""]
+        for e in eps:
+            x, y = 100 * e["offset"][0], 100 * e["offset"][1]
+            ax.plot(x, y, "o" if e["success"] else "^", ms=4, mfc="none" if e["success"] else "tab:red",
+                    mec="tab:green" if e["success"] else "tab:red")
+        rate = sum(e["success"] for e in eps) / len(eps)
+        ax.set(xlim=(-2.2, 2.2), ylim=(-2.2, 2.2), aspect="equal", xlabel="dx (cm)",
+               title=f"{s.obj}\n{'with' if s.force_feedback else 'without'} FF, seed {s.meta.get('seed')}: {rate:.0%}")
+        ax.title.set_fontsize(8)
+    axes[0][0].set_ylabel("dy (cm)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def fig_lighter(summary: dict, objects: list[str], out: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    for j, m in enumerate(MASSES):
+        rates = [(_pooled(summary, o, True, "mass", f"{m:g}") or (0, 0)) for o in objects]
+        ax.bar([i + (j - 0.5) * 0.36 for i in range(len(objects))], [100 * k / n if n else 0 for k, n in rates], 0.34,
+               label=f"{m:g}x mass")
+    ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="success (%)", ylim=(0, 105),
+           title="Lighter objects, 0.03 m movement tolerance (with force feedback)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def fig_noise(summary: dict, objects: list[str], out: Path) -> Path:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    for o in objects:
+        pts = [(v, _pooled(summary, o, True, "noise", f"{v:g}")) for v in NOISE_LEVELS]
+        pts = [(v, 100 * k / n) for v, p in pts if p for k, n in [p]]
+        if pts:
+            ax.plot(*zip(*pts), marker="o", label=o)
+    ax.set(xlabel="joint-torque noise std (N·m)", ylabel="success (%)", ylim=(-3, 103),
+           title="Robustness against joint-torque noise (with force feedback)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> Path:
+    plt = _plt()
+    fig, axes = plt.subplots(len(objects), len(FIG3_OFFSETS), figsize=(9, 2.3 * len(objects)), squeeze=False)
+    for row, obj in zip(axes, objects):
+        for col, ax in enumerate(row):
+            for s in policies:
+                if s.obj != obj or s.meta.get("seed") != min(p.meta.get("seed") for p in policies if p.obj == obj):
+                    continue
+                t = results[s.name]["trajectory"][""][col]
+                colour = "tab:blue" if s.force_feedback else "tab:orange"
+                tag = f"{'FF' if s.force_feedback else 'no FF'} ({'ok' if t['success'] else t['failure']})"
+                ax.plot([100 * v for v in t["palm_x"]], color=colour, label=f"palm, {tag}")
+                ax.plot([100 * v for v in t["object_x"]], color=colour, ls="--", label="object")
+            dx, dy = FIG3_OFFSETS[col]
+            ax.set_title(f"{obj}, scene {'abc'[col]}: offset ({dx:+.3f}, {dy:+.3f}) m", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if col == 0:
+                ax.set_ylabel("x (cm)", fontsize=8)
+            ax.legend(fontsize=6)
+    for ax in axes[-1]:
+        ax.set_xlabel("step", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def grasp_strip(shipped, out: Path, frames: int = 5) -> Path | None:
+    """Frames of one successful held-out episode of `shipped` (its first success), side by side."""
+    import numpy as np
+
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.evaluation import placements
+    from forcegrasp.policy import Policy
+    from forcegrasp.render import save_png
+
+    policy = Policy.load(shipped.path)
+    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback, render_mode="rgb_array")
+    for p in placements(0, 10, env.jitter, "test", clear=env.is_clear):
+        obs, _ = env.reset(seed=p.seed, options={"offset": p.offset})
+        images = [env.render()]
+        while True:
+            obs, _, terminated, truncated, info = env.step(policy(obs))
+            images.append(env.render())
+            if terminated or truncated:
+                break
+        if info["success"]:
+            pick = np.linspace(0, len(images) - 1, frames).round().astype(int)
+            save_png(out, np.concatenate([images[i] for i in pick], axis=1))
+            env.close()
+            return out
+    env.close()
+    return None
+
+
+# ---------------------------------------------------------------------------------- the page
+def _cell(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> str:
+    from forcegrasp.report import wilson
+
+    pooled = _pooled(summary, obj, ff, kind, value)
+    if pooled is None:
+        return "not trained yet"
+    k, n = pooled
+    lo, hi = wilson(k, n)
+    return f"**{k / n:.0%}** ({lo:.0%}–{hi:.0%}, n={n})"
+
+
+def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path) -> Path:
+    objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
+    rel = lambda p: p.relative_to(out).as_posix()  # noqa: E731
+    lines = [
+        "# Results: the paper's experiments on the shipped policies",
+        "",
+        f"Regenerated by `forcegrasp report{' --quick' if protocol_name == 'quick' else ''}` from `assets/policies/` "
+        f"alone ({protocol_name} protocol: {PROTOCOLS[protocol_name]['held_out']} held-out placements per policy, "
+        f"{PROTOCOLS[protocol_name]['mass']} per mass, {PROTOCOLS[protocol_name]['noise']} per noise level; "
+        f"{seconds / 60:.1f} min on this machine). Placements are the `test` stream (seed 0), never used to pick a "
+        "checkpoint; actions deterministic; 95 % Wilson intervals, seeds pooled.",
+        "",
+        "| object | with force feedback | without | paper (with / without) | 1x mass, 0.03 m | 0.5x mass, 0.03 m | torque noise 0.5 N·m |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for o in objects:
+        paper_light = PAPER["mass_1"].get(o)
+        lines.append(f"| {o} | {_cell(summary, o, True, 'held_out')} | {_cell(summary, o, False, 'held_out')} | "
+                     f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''} | "
+                     f"{_cell(summary, o, True, 'mass', '1')} | {_cell(summary, o, True, 'mass', '0.5')} | "
+                     f"{_cell(summary, o, True, 'noise', '0.5')} |")
+    lines += ["", f"The paper (1 M steps, 4 h on a GPU per policy): {PAPER['held_out_ff']} with force feedback, "
+              f"{PAPER['held_out_noff']} without; lighter objects at 1x mass drill 73 %, mug 80 %, camera 99 % (spray "
+              f"lower), at 0.5x {PAPER['mass_0.5']}; torque noise: {PAPER['noise']}.", "",
+              "## The policies", "",
+              "| policy | object | force feedback | seed | env steps to the pick | wall-clock (min) | recipe |",
+              "|---|---|---|---:|---:|---:|---|"]
+    for s in policies:
+        r = s.meta.get("recipe", {})
+        extra = ", ".join(f"{k}={v}" for k, v in {**r.get("overrides", {}), **{k: v for k, v in r.get("actor", {}).items()
+                                                                                if k == "demo_episodes" and v}}.items())
+        lines.append(f"| `{s.path.name}` | {s.obj} | {'yes' if s.force_feedback else 'no'} | {s.meta.get('seed')} | "
+                     f"{s.meta.get('env_steps', 0):,} | {s.meta.get('wall_clock_min', 0):g} | "
+                     f"{r.get('name', '?')}{' + ' + extra if extra else ''} |")
+    captions = {
+        "fig4": "Success with and without force feedback (the paper's Fig. 4)",
+        "fig6": "Adaptation maps: held-out placements in the ±2 cm square, success (green circle) and failure (red triangle) (Fig. 6)",
+        "fig7": "Lighter objects: 1x and 0.5x mass with the 0.03 m movement tolerance (Fig. 7)",
+        "fig8": "Robustness against joint-torque noise, 0 to 1 N·m (Fig. 8)",
+        "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, with and without force feedback (Fig. 3)",
+    }
+    lines += ["", "## Figures", ""]
+    for key, caption in captions.items():
+        if key in figures:
+            lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
+    strips = [p for k, p in figures.items() if k.startswith("strip-")]
+    if strips:
+        lines += ["**One successful held-out grasp per object**, start to end:", ""]
+        lines += [f"![{p.stem}]({rel(p)})" for p in strips] + [""]
+    page = out / "results.md" if out.is_dir() else out
+    page.write_text("\n".join(lines))
+    return page
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="forcegrasp report", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="reduced trial counts (CI)")
+    parser.add_argument("--policies", type=Path, default=POLICIES_DIR, help=f"folder of shipped policies ({POLICIES_DIR})")
+    parser.add_argument("--out", type=Path, default=POLICIES_DIR.parent.parent / "docs", help="folder for results.md")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
+    parser.add_argument("--no-strips", action="store_true", help="skip the rendered grasp strips")
+    args = parser.parse_args(argv)
+    policies = shipped_policies(args.policies)
+    if not policies:
+        print(f"error: no shipped policies in {args.policies}", file=sys.stderr)
+        return 2
+    name = "quick" if args.quick else "full"
+    print(f"{len(policies)} policies, {name} protocol, {args.workers} workers", flush=True)
+    t0 = time.perf_counter()
+    results = run_experiments(policies, PROTOCOLS[name], args.workers, log=lambda s: print(s, flush=True))
+    summary = summarise(policies, results)
+    figs_dir = args.out / "results"
+    figs_dir.mkdir(parents=True, exist_ok=True)
+    objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
+    figures = {
+        "fig4": fig_force_feedback(summary, objects, figs_dir / "force-feedback.png"),
+        "fig6": fig_adaptation(policies, results, figs_dir / "adaptation.png"),
+        "fig7": fig_lighter(summary, objects, figs_dir / "lighter.png"),
+        "fig8": fig_noise(summary, objects, figs_dir / "torque-noise.png"),
+        "fig3": fig_trajectories(policies, results, objects, figs_dir / "trajectories.png"),
+    }
+    if not args.no_strips:
+        for o in objects:
+            first = next(s for s in policies if s.obj == o and s.force_feedback) if any(
+                s.obj == o and s.force_feedback for s in policies) else None
+            if first is not None and (p := grasp_strip(first, figs_dir / f"grasp-{o}.png")) is not None:
+                figures[f"strip-{o}"] = p
+    seconds = time.perf_counter() - t0
+    (args.out / "results.json").write_text(json.dumps(
+        {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "policies": summary,
+         "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
+    page = write_page(policies, summary, figures, name, seconds, args.out)
+    for line in page.read_text().splitlines()[8:8 + len(objects)]:
+        print(line)
+    print(f"wrote {page}, {args.out / 'results.json'} and {len(figures)} figures in {figs_dir} ({seconds:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,83 @@
+"""``forcegrasp ship RUN``: copy a run's picked policy into ``assets/policies/`` with its record.
+
+The pick is the paper's: the evaluator's five best checkpoints, re-scored on 100 placements, the
+best of them (`forcegrasp experiment` freezes it at each mark; ``--mark`` picks one, default the
+last). The shipped file is tested again on ``--episodes`` held-out placements (the ``"test"``
+stream, never used to pick) and the JSON sidecar records what `forcegrasp report` and a reader
+need: object, force feedback, seed, environment steps and wall-clock to the pick, the recipe, the
+score. Name: ``<object>-<ff|noff>-s<seed>.safetensors``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+
+def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
+    from forcegrasp.cli.experiment import load_record, test_files
+    from forcegrasp.policy_file import load_policy_file
+
+    record = load_record(run_dir)
+    if record is None:
+        raise ValueError(f"{run_dir}: no experiment.json (ship takes runs made with forcegrasp experiment)")
+    marks = [m for m in record["marks"] if "best" in m["files"]]
+    if mark is not None:
+        marks = [m for m in marks if abs(m["minute"] - mark) < 1e-6]
+    if not marks:
+        raise ValueError(f"{run_dir}: no mark{'' if mark is None else f' at minute {mark:g}'} with an evaluator's pick")
+    m = marks[-1]
+    src = run_dir / "marks" / m["files"]["best"]
+    meta = load_policy_file(src)[1]
+    arm = "ff" if meta.force_feedback else "noff"
+    dst = out_dir / f"{meta.object_name}-{arm}-s{record['seed']}.safetensors"
+    log(f"testing {src} on {episodes} held-out placements")
+    (score,) = test_files([src], episodes, record.get("test_seed", 0), {}, workers, log)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(src, dst.with_suffix(".tmp"))
+    os.replace(dst.with_suffix(".tmp"), dst)
+    sac = record["config"]["learner"]
+    sidecar = {
+        "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "seed": record["seed"],
+        "picked_step": int(meta.training_steps),
+        "env_steps": int(m["steps"].get("latest", meta.training_steps)),
+        "wall_clock_min": float(m["minute"]),
+        "picked_by": "the evaluator's top 5 by 10 placements, re-scored on 100; the best (paper's protocol)",
+        "held_out": {"episodes": score["episodes"], "success_rate": score["success_rate"],
+                     "mean_return": round(score["mean_return"], 2), "stream": "test", "seed": record.get("test_seed", 0)},
+        "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
+                   "actor": {k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor", "demo_episodes")
+                             if k in record["config"]["actor"]}},
+        "env": record["config"]["env"],
+        "run": {"name": record["config"]["run"]["name"], "label": record.get("label"),
+                "machine": "2 CPU cores, no GPU; learner, 2 actors x 8 envs and the evaluator"},
+    }
+    dst.with_suffix(".json").write_text(json.dumps(sidecar, indent=1) + "\n")
+    log(f"wrote {dst} ({score['success_rate']:.0%} on {score['episodes']} held-out placements) and {dst.with_suffix('.json').name}")
+    return dst
+
+
+def main(argv=None) -> int:
+    from forcegrasp.report import POLICIES_DIR
+
+    parser = argparse.ArgumentParser(prog="forcegrasp ship", description=__doc__.splitlines()[0])
+    parser.add_argument("run", type=Path, help="run folder of a forcegrasp experiment")
+    parser.add_argument("--mark", type=float, default=None, help="minute of the mark to ship (default: the last)")
+    parser.add_argument("--out", type=Path, default=POLICIES_DIR, help=f"folder (default {POLICIES_DIR})")
+    parser.add_argument("--episodes", type=int, default=100, help="held-out placements of the final test")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1)
+    args = parser.parse_args(argv)
+    try:
+        ship(args.run, args.out, args.mark, args.episodes, args.workers, log=lambda s: print(s, flush=True))
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

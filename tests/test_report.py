@@ -1,0 +1,94 @@
+"""The shipped policies and `forcegrasp report`: every committed policy matches its env and
+succeeds at the rate its record and docs/results.md claim; the quick report agrees with the full."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from forcegrasp.env import FunctionalGraspEnv
+from forcegrasp.evaluation import placements, run_episode
+from forcegrasp.policy import Policy
+from forcegrasp.report import POLICIES_DIR, shipped_policies, wilson
+
+REPO = Path(__file__).resolve().parent.parent
+RESULTS = REPO / "docs" / "results.json"
+SHIPPED = shipped_policies()
+Z99 = 2.576
+
+
+def test_policies_are_shipped():
+    assert SHIPPED, f"no policies in {POLICIES_DIR}"
+    for s in SHIPPED:
+        assert s.name == f"{s.obj}-{'ff' if s.force_feedback else 'noff'}-s{s.meta['seed']}"
+
+
+@pytest.mark.parametrize("shipped", SHIPPED, ids=[s.name for s in SHIPPED])
+def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
+    policy = Policy.load(shipped.path)
+    meta = policy.metadata
+    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback)
+    assert meta.object_name == shipped.obj and meta.force_feedback == shipped.force_feedback
+    assert meta.obs_dim == env.observation_space.shape[0] == (77 if shipped.force_feedback else 53)
+    assert meta.act_dim == env.action_space.shape[0] == 7
+    assert meta.training_steps == shipped.meta["picked_step"] <= shipped.meta["env_steps"]
+    assert shipped.meta["env"]["mass_scale"] == 5.0 and shipped.meta["env"]["jitter"] == 0.02
+    n = 20
+    results = [run_episode(env, policy, p) for p in placements(0, n, env.jitter, "test", clear=env.is_clear)]
+    k = sum(r.success for r in results)
+    lo, hi = wilson(k, n, Z99)
+    claims = {"its record": shipped.meta["held_out"]["success_rate"]}
+    if RESULTS.is_file():
+        report = json.loads(RESULTS.read_text())["policies"].get(shipped.name)
+        if report is not None:
+            claims["docs/results.md"] = report["held_out"][""]["rate"]
+    for source, claim in claims.items():
+        assert lo <= claim <= hi, f"{shipped.name}: {k}/{n} here, {claim:.0%} in {source}"
+
+
+def test_quick_report_agrees_with_the_committed_results(tmp_path):
+    full = json.loads(RESULTS.read_text())
+    assert full["protocol"] == "full"
+    assert set(full["policies"]) == {s.name for s in SHIPPED}, "docs/results.md is older than assets/policies/"
+    proc = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "report", "--quick", "--out", str(tmp_path),
+                           "--no-strips"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    quick = json.loads((tmp_path / "results.json").read_text())
+    assert (tmp_path / "results.md").read_text().count("| ") > 10
+    for png in ("force-feedback", "adaptation", "lighter", "torque-noise", "trajectories"):
+        assert (tmp_path / "results" / f"{png}.png").stat().st_size > 5000
+    for name, row in quick["policies"].items():
+        for kind in ("held_out", "mass", "noise"):
+            for value, cell in row[kind].items():
+                lo, hi = wilson(cell["successes"], cell["episodes"], Z99)
+                claimed = full["policies"][name][kind][value]["rate"]
+                assert lo <= claimed <= hi, (name, kind, value, cell, claimed)
+
+
+def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
+    import shutil
+
+    from forcegrasp.cli.ship import main as ship_main
+    from forcegrasp.config import load_config
+
+    src = SHIPPED[0]
+    run = tmp_path / "run"
+    (run / "marks").mkdir(parents=True)
+    shutil.copyfile(src.path, run / "marks" / "best-005.0.safetensors")
+    config = load_config(env={}, overrides=[f"env.object={src.obj}", "run.name=r", "actor.demo_episodes=2"]).to_dict()
+    record = {"label": "x", "seed": 7, "test_seed": 0, "config": config, "marks": [
+        {"minute": 5.0, "files": {"best": "best-005.0.safetensors"}, "steps": {"best": src.meta["picked_step"],
+                                                                              "latest": 999999}, "test": {}}]}
+    (run / "experiment.json").write_text(json.dumps(record))
+    out = tmp_path / "policies"
+    assert ship_main([str(run), "--out", str(out), "--episodes", "3", "--workers", "1"]) == 0
+    name = f"{src.obj}-{'ff' if src.force_feedback else 'noff'}-s7"
+    meta = json.loads((out / f"{name}.json").read_text())
+    assert (out / f"{name}.safetensors").read_bytes() == src.path.read_bytes()
+    assert meta["env_steps"] == 999999 and meta["wall_clock_min"] == 5.0 and meta["held_out"]["episodes"] == 3
+    assert meta["recipe"]["actor"]["demo_episodes"] == 2
+    assert ship_main([str(run), "--mark", "10", "--out", str(out)]) == 2  # no such mark: a clear error
