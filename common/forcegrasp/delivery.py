@@ -39,6 +39,7 @@ class Outbox:
         self.sent_batches = 0
         self.resent_batches = 0
         self.dropped_batches = 0
+        self.acked_transitions = 0  # what the learner confirmed it ingested: the loss-free count
         self._headroom: float | None = None
         self._sent_since_progress = 0
         self._was_present = False
@@ -57,7 +58,7 @@ class Outbox:
         acked = progress.acked.get(self.actor_id)
         if acked is not None and acked[0] == self.epoch:
             while self.unacked and self.unacked[0][0] <= acked[1]:
-                self.unacked.popleft()
+                self.acked_transitions += self.unacked.popleft()[2]
 
     def must_wait(self, learner_present: bool) -> bool:
         """True while a live learner says the actors are ahead of its update-to-data ratio.
@@ -87,7 +88,7 @@ class Outbox:
     def stats(self) -> dict:
         return {"sent_batches": self.sent_batches, "buffered_batches": len(self.waiting),
                 "unacked_batches": len(self.unacked), "resent_batches": self.resent_batches,
-                "dropped_batches": self.dropped_batches}
+                "dropped_batches": self.dropped_batches, "acked_transitions": self.acked_transitions}
 
 
 # --------------------------------------------------------------------------------------------
@@ -133,6 +134,19 @@ class Streams:
         s.ingested += batch.n
         s.staleness_sum += policy_version - batch.policy_version
         return True
+
+    def snapshot(self) -> dict[str, list[int]]:
+        """``{actor: [epoch, last_seq]}``, for the learner's checkpoint."""
+        return {a: [s.epoch, s.last_seq] for a, s in self.by_actor.items() if s.epoch is not None}
+
+    @classmethod
+    def restore(cls, saved) -> "Streams":
+        """Streams as `snapshot` left them; malformed entries (a hand-edited file) are skipped."""
+        out = cls()
+        for actor_id, value in (saved.items() if isinstance(saved, dict) else ()):
+            if isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) for v in value):
+                out.by_actor[str(actor_id)] = Stream(last_seq=value[1], epoch=value[0])
+        return out
 
     def acked(self) -> dict[str, tuple[int, int]]:
         """Per actor, the (epoch, seq) of the last batch admitted: the progress message's acks."""

@@ -63,10 +63,12 @@ class Learner:
                 self.buffer = self._empty_replay()
             self.ingested = int(extra["ingested"])
             self.policy_version = int(extra["policy_version"])
+            self.resumed_extra = extra
             self.last_checkpoint = self.last_policy = self.ingested
             log.info("resumed from %s: %d transitions ingested, %d updates, %d in replay",
                      ckpt, self.ingested, self.sac.num_updates, len(self.buffer))
         else:
+            self.resumed_extra = {}
             self.sac = SAC(self.obs_dim, task.ACT_DIM, self.sac_cfg, priv_dim=self.priv_dim)
             self.buffer = self._empty_replay()
             self.files.config.write_text(self.config.to_toml())
@@ -177,10 +179,15 @@ class Learner:
         if self.config.learner.snapshot_replay:
             self.buffer.save(self.files.replay)
         policy_path = self.save_policy()
-        self.sac.save_checkpoint(self.files.checkpoint,
-                                 extra={"ingested": self.ingested, "policy_version": self.policy_version})
+        self.sac.save_checkpoint(self.files.checkpoint, extra={"ingested": self.ingested,
+                                                                "policy_version": self.policy_version,
+                                                                **self.checkpoint_extra()})
         self.last_checkpoint = self.ingested
         return policy_path
+
+    def checkpoint_extra(self) -> dict:
+        """More learner state for the checkpoint header (JSON); the service adds its streams."""
+        return {}
 
     def save_due(self) -> Path | None:
         """The file the recipe calls for now, if any: a full checkpoint every

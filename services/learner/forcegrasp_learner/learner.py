@@ -59,7 +59,9 @@ class LearnerService(Learner):
         self.dir = self.files.root
         self.limits = Limits(max_payload_bytes=config.learner.max_payload_mb * 2**20)
         self.rejects = RejectCounter()
-        self.streams = Streams()
+        # Each actor's last admitted (epoch, seq) travels with the checkpoint: after a restart a
+        # batch that was ingested before it but whose acknowledgement never left is a duplicate.
+        self.streams = Streams.restore(self.resumed_extra.get("streams", {}))
         self.latest_weights: bytes | None = None
         self.writer = None  # TensorBoard, opened by run()
         self.inbox = None
@@ -92,6 +94,9 @@ class LearnerService(Learner):
             return 0  # resent after an outage, already in replay
         self.rejects.accept()
         return self.observe(batch)
+
+    def checkpoint_extra(self) -> dict:
+        return {"streams": self.streams.snapshot()}
 
     def progress(self) -> Progress:
         return Progress(self.ingested, self.sac.num_updates, self.headroom(), self.streams.acked())
