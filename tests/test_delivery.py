@@ -78,7 +78,7 @@ def test_streams_survive_a_learner_restart_through_its_checkpoint():
     saved = json.loads(json.dumps(streams.snapshot()))  # as the checkpoint header stores it
     back = Streams.restore(saved)
     assert not back.admit(_batch(1), 0) and back.admit(_batch(2), 0)
-    assert back.acked() == {"a": (7, 2)} and back.gaps == 0
+    assert back.acked() == {"a": (7, 2)} and back.gaps == 0 and back.by_actor["a"].ingested == 12
     assert Streams.restore({"a": "junk", "b": [1]}).acked() == {}  # a tampered header is skipped
 
 

@@ -136,16 +136,16 @@ class Streams:
         return True
 
     def snapshot(self) -> dict[str, list[int]]:
-        """``{actor: [epoch, last_seq]}``, for the learner's checkpoint."""
-        return {a: [s.epoch, s.last_seq] for a, s in self.by_actor.items() if s.epoch is not None}
+        """``{actor: [epoch, last_seq, ingested]}``, for the learner's checkpoint."""
+        return {a: [s.epoch, s.last_seq, s.ingested] for a, s in self.by_actor.items() if s.epoch is not None}
 
     @classmethod
     def restore(cls, saved) -> "Streams":
         """Streams as `snapshot` left them; malformed entries (a hand-edited file) are skipped."""
         out = cls()
         for actor_id, value in (saved.items() if isinstance(saved, dict) else ()):
-            if isinstance(value, list) and len(value) == 2 and all(isinstance(v, int) for v in value):
-                out.by_actor[str(actor_id)] = Stream(last_seq=value[1], epoch=value[0])
+            if isinstance(value, list) and len(value) == 3 and all(isinstance(v, int) for v in value):
+                out.by_actor[str(actor_id)] = Stream(last_seq=value[1], epoch=value[0], ingested=value[2])
         return out
 
     def acked(self) -> dict[str, tuple[int, int]]:

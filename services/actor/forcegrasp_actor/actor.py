@@ -136,11 +136,28 @@ class ActorService(Actor):
                     continue
                 self.step_all()
                 self.outbox.flush(has_subscribers(transitions), transitions.put)
+            self._drain(transitions, progress_sub)
             token.undeclare()
         finally:
             from forcegrasp.transport import close_session
 
             close_session(session)
+
+
+    def _drain(self, transitions, progress_sub, timeout_s: float = 3.0) -> None:
+        """On a clean stop: hand the learner what waits and collect its acknowledgements, so the
+        final count says what the learner has (a killed actor loses only its unacked batches)."""
+        deadline = time.monotonic() + timeout_s
+        while (self.outbox.waiting or self.outbox.unacked) and time.monotonic() < deadline:
+            present = has_subscribers(transitions)
+            self.outbox.flush(present, transitions.put)
+            progress = take_latest(progress_sub)
+            if progress is not None:
+                self.apply_progress(progress)
+            time.sleep(0.02)
+        out = self.outbox.stats()
+        log.info("actor %s: the learner acknowledged %d transitions; %d batches unacknowledged at exit",
+                 self.actor_id, out["acked_transitions"], out["unacked_batches"] + out["buffered_batches"])
 
 
 def main(argv=None) -> int:
