@@ -92,3 +92,46 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert meta["env_steps"] == 999999 and meta["wall_clock_min"] == 5.0 and meta["held_out"]["episodes"] == 3
     assert meta["recipe"]["actor"]["demo_episodes"] == 2
     assert ship_main([str(run), "--mark", "10", "--out", str(out)]) == 2  # no such mark: a clear error
+
+
+def test_serve_hands_out_a_shipped_policy_like_an_evaluator(tmp_path):
+    """`forcegrasp serve FILE`: `forcegrasp best` gets the same bytes over HTTP and over Zenoh."""
+    import signal
+    import time
+
+    from forcegrasp.transport import free_tcp_port
+
+    src = SHIPPED[0]
+    http_port, zenoh_port = free_tcp_port(), free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{zenoh_port}"
+    proc = subprocess.Popen([sys.executable, "-m", "forcegrasp.cli", "serve", str(src.path),
+                             "--set", f"evaluator.http_port={http_port}",
+                             "--set", f'network.learner_listen=["{endpoint}"]'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert "serving" in proc.stdout.readline()
+        for how in (["--url", f"http://127.0.0.1:{http_port}"],
+                    ["--set", f"run.name={src.name}", "--set", f'network.connect=["{endpoint}"]']):
+            out = tmp_path / f"{len(how)}.safetensors"
+            got = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "best", "--out", str(out), *how],
+                                 capture_output=True, text=True, timeout=60)
+            assert got.returncode == 0, got.stdout + got.stderr
+            assert out.read_bytes() == src.path.read_bytes()
+            assert json.loads(got.stdout)["success_rate"] == src.meta["held_out"]["success_rate"]
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+    assert proc.returncode == 0
+
+
+def test_eval_and_replay_work_on_a_shipped_policy(tmp_path):
+    """`forcegrasp eval FILE --log-dir` writes MCAP episodes that `forcegrasp replay` renders."""
+    src = SHIPPED[0]
+    got = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "eval", str(src.path), "--episodes", "1",
+                          "--log-dir", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr
+    (episode,) = (tmp_path / "as-given").glob("*.mcap")
+    got = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "replay", str(episode), "--out",
+                          str(tmp_path / "strip.png"), "--frames", "3"], capture_output=True, text=True, timeout=120)
+    assert got.returncode == 0, got.stderr
+    assert (tmp_path / "strip.png").stat().st_size > 10000

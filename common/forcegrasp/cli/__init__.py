@@ -136,6 +136,7 @@ SERVICES = {
 #: Other sub-commands that own their argument list.
 TOOLS = {
     "best": ("forcegrasp_evaluator.client", "fetch the evaluator's best policy: forcegrasp best --out FILE"),
+    "serve": ("forcegrasp_evaluator.serve", "serve a shipped policy as the best-policy endpoint (HTTP and Zenoh)"),
     "replay": ("forcegrasp.cli.replay", "render an evaluator episode log (.mcap) to an image strip or video"),
     "plot": ("forcegrasp.cli.plot", "training curves of one or several runs as one PNG"),
     "train": ("forcegrasp.cli.train", "train in this process: the same roles and files as `up`, no network (resumable)"),

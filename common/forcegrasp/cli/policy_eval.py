@@ -48,7 +48,7 @@ def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
 
 
 def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
-                log=print) -> list[dict]:
+                log=print, log_dir: Path | None = None) -> list[dict]:
     """One row per sweep value: success rate, mean return and failure counts over the placements."""
     from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.evaluation import placements, run_episode
@@ -69,7 +69,8 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
             raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
                              f"{env.observation_space.shape[0]}")
         t0 = time.perf_counter()
-        results = [run_episode(env, policy, p)
+        folder = None if log_dir is None else log_dir / (f"{key}-{value:g}" if key else "as-given")
+        results = [run_episode(env, policy, p, _logger(folder, env, p, meta, policy_path))
                    for p in placements(seed, episodes, env.jitter, "test", clear=env.is_clear)]
         row = {"object": meta.object_name, "force_feedback": meta.force_feedback,
                "setting": key, "value": value, "episodes": len(results),
@@ -82,6 +83,17 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
         log(f"{key or 'settings'} = {value if key else kwargs or 'defaults'}: success {row['success_rate']:.0%}, "
             f"return {row['mean_return']:.1f}, failures {row['failures']} ({row['seconds']} s)")
     return rows
+
+
+def _logger(folder: Path | None, env, placement, meta, policy_path: Path):
+    """An MCAP episode log (``forcegrasp replay`` renders it), or None without ``--log-dir``."""
+    if folder is None:
+        return None
+    from forcegrasp.mcap_log import EpisodeLogger
+
+    folder.mkdir(parents=True, exist_ok=True)
+    info = {"policy": str(policy_path), "object": meta.object_name, "episode": placement.index, "stream": "test"}
+    return EpisodeLogger(folder / f"test-{placement.index:03d}.mcap", env, info)
 
 
 def plot_rows(rows: list[dict], out: Path, title: str) -> Path:
@@ -111,6 +123,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sweep", metavar="KEY=V1,V2,...", help="test at each value of one env setting")
     parser.add_argument("--json", type=Path, help="write the rows as JSON")
     parser.add_argument("--plot", type=Path, help="PNG of success rate against the swept setting")
+    parser.add_argument("--log-dir", type=Path, help="write each episode as an MCAP log here (forcegrasp replay renders it)")
     args = parser.parse_args(argv)
     try:
         fixed = dict((k, v[0]) for k, v in (parse_setting(s, many=False) for s in args.env))
@@ -125,7 +138,7 @@ def main(argv=None) -> int:
     print(f"policy {policy_path}, {args.episodes} test placements per setting", flush=True)
     try:
         rows = evaluate_settings(policy_path, args.episodes, args.seed, fixed, sweep,
-                           log=lambda line: print(line, flush=True))
+                                 log=lambda line: print(line, flush=True), log_dir=args.log_dir)
     except ValueError as exc:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
     print()
