@@ -152,31 +152,40 @@ def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> 
 
 
 def grasp_strip(shipped, out: Path, frames: int = 5) -> Path | None:
-    """Frames of one successful held-out episode of `shipped` (its first success), side by side."""
+    """Frames of the first successful held-out episode of `shipped`, left to right, each seen from
+    the approach side (top row) and from the front (bottom row), as in docs/grasps/."""
     import numpy as np
 
     from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.evaluation import placements
     from forcegrasp.policy import Policy
-    from forcegrasp.render import save_png
+    from forcegrasp.render import look_at, make_renderer, render, save_png
 
     policy = Policy.load(shipped.path)
-    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback, render_mode="rgb_array")
-    for p in placements(0, 10, env.jitter, "test", clear=env.is_clear):
-        obs, _ = env.reset(seed=p.seed, options={"offset": p.offset})
-        images = [env.render()]
-        while True:
-            obs, _, terminated, truncated, info = env.step(policy(obs))
-            images.append(env.render())
-            if terminated or truncated:
-                break
-        if info["success"]:
-            pick = np.linspace(0, len(images) - 1, frames).round().astype(int)
-            save_png(out, np.concatenate([images[i] for i in pick], axis=1))
-            env.close()
-            return out
-    env.close()
-    return None
+    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback)
+    renderer = make_renderer(env.model, 240, 320)
+
+    def shot():
+        target = env.object_position() + np.array([0.0, 0.0, 0.08])
+        return np.concatenate([render(renderer, env.data, look_at(target, 0.5, az, el))
+                               for az, el in ((200, -20), (135, -35))], axis=0)
+
+    try:
+        for p in placements(0, 10, env.jitter, "test", clear=env.is_clear):
+            obs, _ = env.reset(seed=p.seed, options={"offset": p.offset})
+            images = [shot()]
+            while True:
+                obs, _, terminated, truncated, info = env.step(policy(obs))
+                images.append(shot())
+                if terminated or truncated:
+                    break
+            if info["success"]:
+                pick = np.linspace(0, len(images) - 1, frames).round().astype(int)
+                save_png(out, np.concatenate([images[i] for i in pick], axis=1))
+                return out
+        return None
+    finally:
+        renderer.close()
 
 
 # ---------------------------------------------------------------------------------- the page
