@@ -60,12 +60,45 @@ def test_streams_tell_resends_gaps_and_restarts_apart():
     streams = Streams()
     assert streams.admit(_batch(0), 0) and streams.admit(_batch(1), 0)
     assert not streams.admit(_batch(1), 0)  # a resend
-    assert streams.admit(_batch(4), 3)  # 2 and 3 lost
+    assert streams.admit(_batch(4), 3)  # past a hole: admitted, held ahead, never acknowledged
     s = streams.by_actor["a"]
-    assert (s.duplicates, s.gaps, s.ingested, s.last_seq) == (1, 2, 12, 4)
-    assert streams.admit(_batch(0, epoch=8), 3)  # a restarted process counts from 0 again
-    assert s.restarts == 1 and streams.acked() == {"a": (8, 0)}
-    assert streams.stats()["a"]["staleness"] == pytest.approx(1.5)  # versions behind: 0, 0, 3, 3 over 4 batches
+    assert (s.duplicates, s.ingested, s.last_seq, streams.gaps) == (1, 12, 1, 2)
+    assert streams.acked() == {"a": (7, 1)}
+    assert streams.admit(_batch(2), 3)  # the hole fills late (a resend after a lost send)
+    assert streams.acked() == {"a": (7, 2)} and streams.gaps == 1
+    assert not streams.admit(_batch(4), 3)  # already held ahead: a duplicate
+    assert streams.admit(_batch(0, epoch=8), 3)  # a restarted process: its hole (3) is lost for good
+    assert s.restarts == 1 and s.gaps == 1 and streams.acked() == {"a": (8, 0)}
+    assert streams.stats()["a"]["staleness"] == pytest.approx(9 / 5)  # versions behind: 0, 0, 3, 3, 3
+
+
+def test_a_batch_lost_in_flight_is_sent_again_and_the_hole_never_acknowledged(monkeypatch):
+    """A link that drops what was in flight while the learner still looks present: the learner
+    holds what came after the hole and acknowledges only up to it; the actor sends the
+    unacknowledged again after RESEND_AFTER_S and the stream is whole."""
+    from forcegrasp import delivery
+
+    box, streams, wire = Outbox("a", epoch=7, max_batches=100), Streams(), []
+    batches = {seq: _batch(seq) for seq in range(4)}
+    for seq in range(4):
+        box.put(seq, seq, 4)  # the payload stands for the batch
+    box.flush(True, wire.append, now=0.0)
+    for seq in wire:
+        if seq != 1:  # batch 1 lost on the link
+            streams.admit(batches[seq], 0)
+    box.on_progress(Progress(12, 0, None, streams.acked()))
+    assert [s for s, _, _ in box.unacked] == [1, 2, 3] and box.acked_transitions == 4
+    wire.clear()
+    box.flush(True, wire.append, now=1.0)
+    assert wire == []  # too early to resend
+    box._oldest_sent_at = 0.0
+    box.flush(True, wire.append, now=delivery.RESEND_AFTER_S + 1.0)
+    assert wire == [1, 2, 3] and box.resent_batches == 3
+    for seq in wire:
+        streams.admit(batches[seq], 0)
+    box.on_progress(Progress(16, 0, None, streams.acked()))
+    assert not box.unacked and box.acked_transitions == 16 == streams.by_actor["a"].ingested
+    assert streams.gaps == 0 and streams.by_actor["a"].duplicates == 2
 
 
 def test_streams_survive_a_learner_restart_through_its_checkpoint():
@@ -79,7 +112,7 @@ def test_streams_survive_a_learner_restart_through_its_checkpoint():
     back = Streams.restore(saved)
     assert not back.admit(_batch(1), 0) and back.admit(_batch(2), 0)
     assert back.acked() == {"a": (7, 2)} and back.gaps == 0 and back.by_actor["a"].ingested == 12
-    assert Streams.restore({"a": "junk", "b": [1]}).acked() == {}  # a tampered header is skipped
+    assert Streams.restore({"a": "junk", "b": [1], "c": [1, 2, 3, "x", 0]}).acked() == {}  # tampered: skipped
 
 
 def test_progress_round_trip_and_hostile_fields():

@@ -3,13 +3,16 @@ place, so the guarantee can be read (and tested) as a whole.
 
 - Every actor process numbers its batches: ``epoch`` is random per process start, ``seq`` counts
   from 0. The learner's :class:`Streams` reads them per actor: a new epoch is a restarted process,
-  ``seq`` at or below the last one a resend (dropped, counted as a duplicate), a jump a gap
-  (counted: batches lost for good).
+  a ``seq`` it already has a resend (dropped, counted as a duplicate). A batch that arrives past a
+  hole is admitted and held *ahead*; the acknowledgement is the last seq with nothing missing
+  before it, so a hole is never acknowledged. Holes still open when too much is held ahead
+  (``MAX_AHEAD``) or when the actor restarts are counted as gaps: batches lost for good.
 - The actor's :class:`Outbox` keeps every batch until the learner acknowledges it (the
   ``acked`` map of its progress message). While no learner listens, batches wait in a bounded
   outbox (oldest dropped first, counted); when a learner appears again, everything sent but not
-  acknowledged goes again, first. An outage therefore loses nothing that fits the bound, and the
-  learner's duplicate check makes the resend harmless.
+  acknowledged goes again, first. A batch still unacknowledged ``RESEND_AFTER_S`` after it was
+  sent goes again too (with everything after it): a link can lose what was in flight without the
+  actor ever seeing the learner gone. The learner's duplicate check makes resends harmless.
 - Flow control: the progress message also carries the learner's *headroom* (how many more
   transitions it takes before it owes too many updates). The actor pauses while the headroom,
   less what it sent since that word, is used up; a learner that is gone releases it.
@@ -24,6 +27,9 @@ from typing import Callable
 
 from forcegrasp.protocol import Progress, TransitionBatch
 
+RESEND_AFTER_S = 5.0  # an unacknowledged batch this old is sent again (progress acks come at ~20 Hz)
+MAX_AHEAD = 4096  # batches held past a hole before the hole counts as lost
+
 
 # --------------------------------------------------------------------------------------------
 # Sender side (actors)
@@ -36,6 +42,7 @@ class Outbox:
         self.actor_id, self.epoch, self.max_batches = actor_id, epoch, max_batches
         self.waiting: collections.deque[tuple[int, bytes, int]] = collections.deque()  # (seq, payload, n)
         self.unacked: collections.deque[tuple[int, bytes, int]] = collections.deque()  # sent, not yet ingested
+        self._oldest_sent_at = 0.0  # when the batch now first in `unacked` was (re)sent
         self.sent_batches = 0
         self.resent_batches = 0
         self.dropped_batches = 0
@@ -57,8 +64,12 @@ class Outbox:
         self._sent_since_progress = 0
         acked = progress.acked.get(self.actor_id)
         if acked is not None and acked[0] == self.epoch:
+            popped = False
             while self.unacked and self.unacked[0][0] <= acked[1]:
                 self.acked_transitions += self.unacked.popleft()[2]
+                popped = True
+            if popped:  # the batch now oldest was sent no earlier than this ack's news
+                self._oldest_sent_at = time.monotonic()
 
     def must_wait(self, learner_present: bool) -> bool:
         """True while a live learner says the actors are ahead of its update-to-data ratio.
@@ -71,9 +82,12 @@ class Outbox:
             return False
         return self._headroom - self._sent_since_progress <= 0
 
-    def flush(self, learner_present: bool, put: Callable[[bytes], None]) -> None:
-        """Send what waits, if a learner listens; after an outage, the unacknowledged go first."""
-        if learner_present and not self._was_present and self.unacked:
+    def flush(self, learner_present: bool, put: Callable[[bytes], None], now: float | None = None) -> None:
+        """Send what waits, if a learner listens; after an outage, or when the oldest unacknowledged
+        batch is `RESEND_AFTER_S` old, the unacknowledged go (again) first."""
+        now = time.monotonic() if now is None else now
+        stale = self.unacked and now - self._oldest_sent_at > RESEND_AFTER_S
+        if learner_present and self.unacked and (not self._was_present or stale):
             self.resent_batches += len(self.unacked)
             self.waiting.extendleft(reversed(self.unacked))
             self.unacked.clear()
@@ -81,6 +95,8 @@ class Outbox:
         while learner_present and self.waiting:
             item = self.waiting.popleft()
             put(item[1])
+            if not self.unacked:
+                self._oldest_sent_at = now
             self.unacked.append(item)
             self.sent_batches += 1
             self._sent_since_progress += item[2]
@@ -99,8 +115,9 @@ class Outbox:
 class Stream:
     """What the learner knows about one actor's stream."""
 
-    last_seq: int = -1
+    last_seq: int = -1  # every seq up to here is in (the acknowledgement)
     epoch: int | None = None
+    ahead: set = dataclasses.field(default_factory=set)  # admitted seqs past a hole
     restarts: int = 0
     duplicates: int = 0
     ingested: int = 0
@@ -123,29 +140,38 @@ class Streams:
         if batch.epoch != s.epoch:  # first contact, or a restarted actor counting from 0 again
             if s.epoch is not None:
                 s.restarts += 1
-            s.epoch, s.last_seq = batch.epoch, batch.seq - 1
-        if batch.seq <= s.last_seq:
+                s.gaps += _holes(s)  # what the old process never delivered is lost for good
+            s.epoch, s.last_seq, s.ahead = batch.epoch, batch.seq - 1, set()
+        if batch.seq <= s.last_seq or batch.seq in s.ahead:
             s.duplicates += 1
             return False
-        if batch.seq > s.last_seq + 1:
-            s.gaps += batch.seq - s.last_seq - 1
-        s.last_seq = batch.seq
+        s.ahead.add(batch.seq)
+        while s.last_seq + 1 in s.ahead:
+            s.ahead.remove(s.last_seq + 1)
+            s.last_seq += 1
+        if len(s.ahead) > MAX_AHEAD:  # waited long enough: the holes count as lost, acks move on
+            s.gaps += _holes(s)
+            s.last_seq, s.ahead = max(s.ahead), set()
         s.batches += 1
         s.ingested += batch.n
         s.staleness_sum += policy_version - batch.policy_version
         return True
 
     def snapshot(self) -> dict[str, list[int]]:
-        """``{actor: [epoch, last_seq, ingested]}``, for the learner's checkpoint."""
-        return {a: [s.epoch, s.last_seq, s.ingested] for a, s in self.by_actor.items() if s.epoch is not None}
+        """``{actor: [epoch, last_seq, ingested, ahead, gaps]}``, for the learner's checkpoint."""
+        return {a: [s.epoch, s.last_seq, s.ingested, sorted(s.ahead), s.gaps] for a, s in self.by_actor.items()
+                if s.epoch is not None}
 
     @classmethod
     def restore(cls, saved) -> "Streams":
         """Streams as `snapshot` left them; malformed entries (a hand-edited file) are skipped."""
         out = cls()
         for actor_id, value in (saved.items() if isinstance(saved, dict) else ()):
-            if isinstance(value, list) and len(value) == 3 and all(isinstance(v, int) for v in value):
-                out.by_actor[str(actor_id)] = Stream(last_seq=value[1], epoch=value[0], ingested=value[2])
+            if (isinstance(value, list) and len(value) == 5 and all(isinstance(v, int) for v in value[:3])
+                    and isinstance(value[4], int) and isinstance(value[3], list)
+                    and all(isinstance(v, int) for v in value[3][:MAX_AHEAD])):
+                out.by_actor[str(actor_id)] = Stream(last_seq=value[1], epoch=value[0], ingested=value[2],
+                                                     ahead=set(value[3][:MAX_AHEAD]), gaps=value[4])
         return out
 
     def acked(self) -> dict[str, tuple[int, int]]:
@@ -154,7 +180,8 @@ class Streams:
 
     @property
     def gaps(self) -> int:
-        return sum(s.gaps for s in self.by_actor.values())
+        """Batches lost for good, plus the holes still open now."""
+        return sum(s.gaps + _holes(s) for s in self.by_actor.values())
 
     def stats(self) -> dict[str, dict]:
         """Per-actor counters, and each actor's ingest rate since the previous call."""
@@ -164,7 +191,12 @@ class Streams:
             t_prev, n_prev = s.rate_mark
             rate = (s.ingested - n_prev) / (now - t_prev) if t_prev else 0.0
             s.rate_mark = (now, s.ingested)
-            out[actor_id] = {"ingested": s.ingested, "per_s": rate, "last_seq": s.last_seq, "gaps": s.gaps,
+            out[actor_id] = {"ingested": s.ingested, "per_s": rate, "last_seq": s.last_seq, "gaps": s.gaps + _holes(s),
                              "restarts": s.restarts, "duplicates": s.duplicates,
                              "staleness": s.staleness_sum / s.batches if s.batches else 0.0}
         return out
+
+
+def _holes(s: Stream) -> int:
+    """Batches missing below the highest one held ahead."""
+    return (max(s.ahead) - s.last_seq - len(s.ahead)) if s.ahead else 0
