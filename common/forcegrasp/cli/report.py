@@ -72,8 +72,12 @@ def fig_force_feedback(summary: dict, objects: list[str], out: Path) -> Path:
 
 def fig_adaptation(policies, results: dict, out: Path) -> Path:
     plt = _plt()
-    fig, axes = plt.subplots(1, len(policies), figsize=(2.6 * len(policies), 2.9), squeeze=False)
-    for ax, s in zip(axes[0], policies):
+    cols = min(4, len(policies))
+    rows = -(-len(policies) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.9 * rows), squeeze=False)
+    for ax in axes.flat[len(policies):]:
+        ax.axis("off")
+    for ax, s in zip(axes.flat, policies):
         eps = results[s.name]["held_out"][""]
         for e in eps:
             x, y = 100 * e["offset"][0], 100 * e["offset"][1]
@@ -83,7 +87,8 @@ def fig_adaptation(policies, results: dict, out: Path) -> Path:
         ax.set(xlim=(-2.2, 2.2), ylim=(-2.2, 2.2), aspect="equal", xlabel="dx (cm)",
                title=f"{s.obj}\n{'with' if s.force_feedback else 'without'} FF, seed {s.meta.get('seed')}: {rate:.0%}")
         ax.title.set_fontsize(8)
-    axes[0][0].set_ylabel("dy (cm)")
+    for row in axes:
+        row[0].set_ylabel("dy (cm)")
     fig.tight_layout()
     fig.savefig(out, dpi=100)
     plt.close(fig)
