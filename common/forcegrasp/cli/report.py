@@ -55,7 +55,7 @@ def fig_force_feedback(summary: dict, objects: list[str], out: Path) -> Path:
             lo, hi = wilson(k, n)
             ax.bar(i + (j - 0.5) * 0.36, 100 * k / n, 0.34, color=colour, label=None if i else
                    ("with force feedback" if ff else "without force feedback"))
-            ax.errorbar(i + (j - 0.5) * 0.36, 100 * k / n, yerr=[[100 * (k / n - lo)], [100 * (hi - k / n)]],
+            ax.errorbar(i + (j - 0.5) * 0.36, 100 * k / n, yerr=[[max(0.0, 100 * (k / n - lo))], [max(0.0, 100 * (hi - k / n))]],
                         color="k", capsize=3, lw=1)
             for r in summary.values():  # each seed as a dot
                 if r["object"] == obj and r["force_feedback"] == ff:
