@@ -32,6 +32,14 @@ def _plt():
     return plt
 
 
+def _save(fig, out: Path, dpi: int) -> Path:
+    """Lay out, write and close one figure."""
+    fig.tight_layout()
+    fig.savefig(out, dpi=dpi)
+    _plt().close(fig)
+    return out
+
+
 def _pooled(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> tuple[int, int] | None:
     """Successes and episodes over every seed of one object and arm."""
     rows = [r for r in summary.values() if r["object"] == obj and r["force_feedback"] == ff and value in r[kind]]
@@ -64,10 +72,7 @@ def fig_force_feedback(summary: dict, objects: list[str], out: Path) -> Path:
     ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="held-out success (%)", ylim=(0, 105),
            title="Success with and without force feedback (95 % intervals; dots: seeds)")
     ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=110)
 
 
 def fig_adaptation(policies, results: dict, out: Path) -> Path:
@@ -89,10 +94,7 @@ def fig_adaptation(policies, results: dict, out: Path) -> Path:
         ax.title.set_fontsize(8)
     for row in axes:
         row[0].set_ylabel("dy (cm)")
-    fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=100)
 
 
 def fig_lighter(summary: dict, objects: list[str], out: Path) -> Path:
@@ -105,10 +107,7 @@ def fig_lighter(summary: dict, objects: list[str], out: Path) -> Path:
     ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="success (%)", ylim=(0, 105),
            title="Lighter objects, 0.03 m movement tolerance (with force feedback)")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=110)
 
 
 def fig_noise(summary: dict, objects: list[str], out: Path) -> Path:
@@ -123,10 +122,7 @@ def fig_noise(summary: dict, objects: list[str], out: Path) -> Path:
            title="Robustness against joint-torque noise (with force feedback)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=110)
 
 
 def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> Path:
@@ -150,10 +146,7 @@ def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> 
             ax.legend(fontsize=6)
     for ax in axes[-1]:
         ax.set_xlabel("step", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out, dpi=100)
-    plt.close(fig)
-    return out
+    return _save(fig, out, dpi=100)
 
 
 def grasp_strip(shipped, out: Path, frames: int = 5) -> Path | None:
