@@ -17,15 +17,27 @@ ENV MUJOCO_GL=osmesa \
     PYTHONUNBUFFERED=1
 
 WORKDIR /app
-COPY . /app
 
-# constraints.txt pins torch's version. On PyPI that version is the CUDA build for Linux
-# x86_64 (several GB of nvidia-* wheels), so the constraint alone is not enough: the extra
-# index serves the same version as "+cpu", which satisfies the pin (a local label is ignored
-# when matching ==) and sorts above the PyPI build, so pip takes the CPU wheel. pip looks at
-# both indexes for every package and takes the highest version; the rest resolves as on PyPI.
-RUN pip install --no-cache-dir -c constraints.txt \
-        --extra-index-url https://download.pytorch.org/whl/cpu -e .
+# Which torch: TORCH=cpu (default) or TORCH=cuda (a learner image for a GPU machine).
+# constraints.txt pins torch's version. On PyPI that version is the CUDA build for Linux x86_64
+# (several GB of nvidia-* wheels), so the constraint alone is not enough: the CPU index
+# (TORCH_INDEX) serves the same version as "+cpu", which satisfies the pin (a local label is
+# ignored when matching ==) and sorts above the PyPI build, so pip takes the CPU wheel. Where
+# that index cannot be reached pip only warns and installs the CUDA build; check_torch.py then
+# fails the build and says so, instead of leaving a silently 2 GB larger image.
+ARG TORCH=cpu
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+# The dependencies first, read from pyproject.toml, in a layer of their own: a change to the
+# code then rebuilds in seconds instead of reinstalling torch.
+COPY pyproject.toml constraints.txt /app/
+COPY scripts/check_torch.py /app/scripts/
+RUN if [ "$TORCH" = cpu ]; then index="--extra-index-url $TORCH_INDEX"; else index=""; fi \
+    && python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" > /tmp/requirements.txt \
+    && pip install --no-cache-dir -c constraints.txt $index -r /tmp/requirements.txt \
+    && python scripts/check_torch.py "$TORCH"
+
+COPY . /app
+RUN pip install --no-cache-dir --no-deps -c constraints.txt -e . && python scripts/check_torch.py "$TORCH"
 
 ENTRYPOINT ["forcegrasp"]
 CMD ["--help"]

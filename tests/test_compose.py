@@ -144,8 +144,9 @@ def test_services_exist_and_build_from_the_repo_dockerfile():
         context = (COMPOSE.parent / build.get("context", ".")).resolve()
         assert context == REPO, f"{name}: build context {context} is not the repository"
         assert (context / build.get("dockerfile", "Dockerfile")).is_file(), f"{name}: no Dockerfile"
-        assert "image" not in svcs[name], (
-            f"{name}: services that all build must not share an image tag (parallel builds collide)")
+    images = {interpolate(str(svcs[name].get("image", ""))) for name in SERVICE_NAMES}
+    assert images == {"forcegrasp:latest"}, (
+        f"one image for every service (compose builds it once under that tag), not {images}")
 
 
 def test_every_forcegrasp_variable_is_a_real_setting():
@@ -181,7 +182,7 @@ def published(service: dict) -> dict[int, int]:
     """{container port: host port} from the short "HOST:CONTAINER" syntax."""
     out = {}
     for item in service.get("ports", []):
-        host, _, container = str(item).rpartition(":")
+        host, _, container = interpolate(str(item)).rpartition(":")
         out[int(container.split("/")[0])] = int(host.rpartition(":")[2])
     return out
 
@@ -305,11 +306,41 @@ def test_dockerfile_base_entrypoint_and_install():
     assert base.startswith("python:3.11-slim")
     assert image_entrypoint() == ["forcegrasp"]
     installs = [r for r in instructions("RUN") if "pip install" in r]
-    assert installs, "no pip install in the Dockerfile"
-    words = shlex.split(installs[-1])
-    assert "constraints.txt" == words[words.index("-c") + 1], "install with -c constraints.txt (the torch pin)"
-    assert words[words.index("-e") + 1] == ".", "install the repository itself"
+    assert len(installs) == 2, "the dependencies in one layer, then the repository itself"
+    for run in installs:
+        (pip,) = [shlex.split(step) for step in run.split("&&") if "pip install" in step]
+        assert "constraints.txt" == pip[pip.index("-c") + 1], "install with -c constraints.txt (the torch pin)"
+        assert shlex.split(run)[-2:] == ["scripts/check_torch.py", "$TORCH"], "every install ends by checking torch"
+    deps, repo = (shlex.split(r) for r in installs)
+    assert "-r" in deps and "pyproject.toml" in " ".join(deps), "the dependencies come from pyproject.toml"
+    assert "--no-deps" in repo and repo[repo.index("-e") + 1] == ".", "then the repository itself"
     assert (REPO / "constraints.txt").is_file()
+
+
+def test_dockerfile_torch_choice_is_explicit_and_checked():
+    args = dict(a.partition("=")[::2] for a in instructions("ARG"))
+    assert args.get("TORCH") == "cpu" and args.get("TORCH_INDEX", "").startswith("https://")
+    (deps,) = [r for r in instructions("RUN") if "-r /tmp/requirements.txt" in r]
+    assert '[ "$TORCH" = cpu ]' in deps and "--extra-index-url $TORCH_INDEX" in deps
+    assert services()["learner"]["build"]["args"]["TORCH"] == "${TORCH:-cpu}"
+
+
+def test_check_torch_accepts_this_build_and_refuses_the_other(tmp_path):
+    """The check the image build runs: this machine has the CPU wheel (constraints.txt)."""
+    script = str(REPO / "scripts" / "check_torch.py")
+    ok = subprocess.run([sys.executable, script, "cpu"], capture_output=True, text=True)
+    assert ok.returncode == 0 and ok.stdout.startswith("ok: torch ") and "CPU-only" in ok.stdout, ok
+    for wrong in ("cuda", "rocm"):
+        bad = subprocess.run([sys.executable, script, wrong], capture_output=True, text=True)
+        assert bad.returncode == 1 and bad.stderr.startswith("ERROR: "), bad
+    # a CUDA runtime wheel installed next to the CPU torch is caught too (what pip's fallback leaves)
+    site = tmp_path / "site"
+    (site / "nvidia_cublas_cu12-12.4.5.8.dist-info").mkdir(parents=True)
+    (site / "nvidia_cublas_cu12-12.4.5.8.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: nvidia-cublas-cu12\nVersion: 12.4.5.8\n")
+    env = dict(os.environ, PYTHONPATH=f"{site}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+    bad = subprocess.run([sys.executable, script, "cpu"], capture_output=True, text=True, env=env)
+    assert bad.returncode == 1 and "nvidia-cublas-cu12" in bad.stderr and "CPU build was asked for" in bad.stderr
 
 
 def test_dockerfile_rendering_backend_has_its_library():
@@ -388,6 +419,23 @@ def test_secure_profile_gives_every_service_credentials_and_tls(tmp_path):
     assert session_settings(credentials_folder(creds, "learner"), "learner", "mug")["access_control"]["enabled"]
 
 
-def test_plain_profile_publishes_the_learner_on_loopback_only():
+def test_plain_profile_publishes_on_loopback_only():
     (port,) = services()["learner"]["ports"]
     assert interpolate(str(port)) == f"127.0.0.1:{LEARNER_PORT}:{LEARNER_PORT}"
+    (port,) = services()["evaluator"]["ports"]
+    assert interpolate(str(port)) == "127.0.0.1:8080:8080"
+
+
+def test_gpu_profile_gives_the_learner_a_gpu_and_only_it():
+    with open(REPO / "compose.gpu.yaml") as f:
+        override = yaml.safe_load(f)["services"]
+    assert set(override) == {"learner"}, "actors and the evaluator stay on the CPU"
+    (device,) = override["learner"]["deploy"]["resources"]["reservations"]["devices"]
+    assert device["capabilities"] == ["gpu"] and device["driver"] == "nvidia"
+    text = (REPO / "compose.gpu.yaml").read_text()
+    assert "TORCH=cuda" in text, "the file says how to build the CUDA image it needs"
+    client = compose_client()
+    if client is not None:  # the compose client merges the two files without complaint
+        proc = subprocess.run(client + ["-f", str(COMPOSE), "-f", str(REPO / "compose.gpu.yaml"), "config", "-q"],
+                              capture_output=True, text=True, cwd=REPO)
+        assert proc.returncode == 0, proc.stderr
