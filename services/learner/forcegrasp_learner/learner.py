@@ -175,12 +175,14 @@ class LearnerService(Learner):
         if staleness:
             self.writer.add_scalar("actors/staleness", float(np.mean(staleness)), self.ingested)
         self.writer.flush()
+        sending = sorted(a for a, v in values["actors"].items() if v["per_s"] > 0)
         log.info("ingested %d  updates %d (%.0f/s)  ingest %.0f/s  replay %d  v%d  episodes %d  return %s  "
-                 "success %s  rejected %d  gaps %d", values["ingested"], values["updates"], values["updates_per_s"],
-                 values["ingest_per_s"], values["replay_size"], values["policy_version"], values["episodes"],
-                 "-" if values["return_mean"] is None else f"{values['return_mean']:.1f}",
+                 "success %s  rejected %d  gaps %d  actors %d sending: %s", values["ingested"], values["updates"],
+                 values["updates_per_s"], values["ingest_per_s"], values["replay_size"], values["policy_version"],
+                 values["episodes"], "-" if values["return_mean"] is None else f"{values['return_mean']:.1f}",
                  "-" if values["success_rate"] is None else f"{values['success_rate']:.0%}",
-                 values["rejected"], values["gaps"])
+                 values["rejected"], values["gaps"], len(sending),
+                 " ".join(sending[:8]) + (f" +{len(sending) - 8}" if len(sending) > 8 else ""))
 
 
 def main(argv=None) -> int:
