@@ -3,7 +3,7 @@
 import json
 
 from forcegrasp.config import load_config
-from forcegrasp.cli.experiment import RECORD, plot_records, run_experiment
+from forcegrasp.cli.experiment import RECORD, online_at, plot_records, run_experiment
 from forcegrasp.transport import free_tcp_port
 
 
@@ -29,6 +29,8 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
             assert score["episodes"] == 3 and 0.0 <= score["success_rate"] <= 1.0
             assert (run_dir / "marks" / m["files"][kind]).is_file()
     assert any("held-out success" in line for line in lines)
+    online = final["online"]  # the actors' figure beside the held-out tests, read from TensorBoard
+    assert 0.0 <= online["success_rate"] <= 1.0 and 0 < online["step"] <= final["steps"]["latest"]
     on_disk = json.loads((run_dir / RECORD).read_text())
     assert on_disk["elapsed_s"] >= 45 and on_disk["marks"] == record["marks"]
     # Same command, longer budget: training resumes where it stopped and the clock counts on.
@@ -39,3 +41,12 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
     assert again["marks"][:3] == record["marks"]  # kept, not re-tested
     assert again["marks"][-1]["steps"]["latest"] > steps_before
     assert plot_records([again], tmp_path / "x.png").stat().st_size > 10_000
+
+
+def test_online_figure_is_the_last_logged_at_or_before_the_snapshot():
+    scalars = {"actors/success_rate_100": ([100, 200, 300], [0.1, 0.5, 0.9]),
+               "actors/return_mean_100": ([100, 200, 300], [10.0, 50.0, 90.0])}
+    assert online_at(scalars, 250) == {"success_rate": 0.5, "return_mean": 50.0, "step": 200}
+    assert online_at(scalars, 300)["success_rate"] == 0.9
+    assert online_at(scalars, 99) is None  # nothing logged yet: no figure rather than a later one
+    assert online_at({}, 1000) is None

@@ -126,8 +126,39 @@ def test_files(paths: list[Path], episodes: int, seed: int, env_kwargs: dict, wo
     return results
 
 
+def online_at(scalars: dict, step: int) -> dict | None:
+    """The actors' online figures as the learner logged them at ``step`` or just before: their last
+    100 episodes, sampled actions, weights changing under them (issue 15) -- what the progress
+    line showed when the mark's latest snapshot was taken, to set beside its held-out test."""
+    out = {}
+    for key, tag in (("success_rate", "actors/success_rate_100"), ("return_mean", "actors/return_mean_100")):
+        steps, values = scalars.get(tag, ([], []))
+        before = [i for i, s in enumerate(steps) if s <= step]
+        if not before:
+            return None
+        out[key], out["step"] = float(values[before[-1]]), int(steps[before[-1]])
+    return out
+
+
+def add_online(run_dir: Path, record: dict) -> None:
+    """Give every mark that has none the online figures at its latest snapshot's step."""
+    todo = [m for m in record["marks"] if "online" not in m and "latest" in m["steps"]]
+    tb = RunDir(run_dir).tensorboard
+    if not todo or not tb.is_dir():
+        return
+    from forcegrasp.cli.plot import read_scalars
+
+    scalars = read_scalars(tb)
+    for m in todo:
+        online = online_at(scalars, m["steps"]["latest"])
+        if online is not None:
+            m["online"] = online
+    save_record(run_dir, record)
+
+
 def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
     """Score every frozen file of every mark that has no score yet, then save the record."""
+    add_online(run_dir, record)
     todo = [(m, kind) for m in record["marks"] for kind in m["files"] if kind not in m["test"]]
     if not todo:
         return
@@ -144,6 +175,8 @@ def summary_lines(record: dict) -> list[str]:
         t = m["test"]
         cells = [f"{kind} {t[kind]['success_rate']:.0%} (step {m['steps'].get(kind)})" for kind in ("best", "latest")
                  if kind in t]
+        if "online" in m:
+            cells.append(f"online {m['online']['success_rate']:.0%} (actors' last 100 episodes)")
         lines.append(f"  {m['minute']:5.1f} min: " + ", ".join(cells))
     return lines
 
