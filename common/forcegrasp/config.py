@@ -91,6 +91,9 @@ class NetworkConfig:
     credentials: str = _f("", "folder from 'forcegrasp certs DIR' (DIR, or one identity's DIR/<identity>): TLS, "
                               "user/password and the learner's access control; endpoints must be tls/ (docs/security.md)")
     mutual_tls: bool = _f(True, "with credentials: every service shows its certificate, not only the learner")
+    shared_memory: bool = _f(False, "Zenoh shared memory between services on one machine; off because a receiver "
+                                    "keeps every sender's 16 MB segment after the sender exits (eclipse-zenoh/zenoh#2787), "
+                                    "so each actor restart grew the learner and /dev/shm (bench/soak.py)")
 
     def connect_endpoints(self) -> list[str]:
         """Where non-learner services connect: ``connect`` or the learner's listen endpoints.

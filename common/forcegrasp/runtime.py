@@ -42,6 +42,7 @@ def open_service_session(config: Config, service: str, identity: str | None = No
         connect,
         mode=mode,
         lease_ms=net.lease_ms,
+        shared_memory=net.shared_memory,
         config_file=net.zenoh_config or None,
         extra=extra,
     )
