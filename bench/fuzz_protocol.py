@@ -1,6 +1,6 @@
-"""Bounded fuzz run of every message decoder: N mutated messages, rejections counted by reason.
+"""Bounded fuzz run of every message decoder and of the evaluator's HTTP page.
 
-    python bench/fuzz_protocol.py --messages 100000
+    python bench/fuzz_protocol.py --messages 100000 --http 5000
 
 Each message starts from a valid transitions (with n-step horizons and privileged state),
 weights, stats, checkpoint or best message and gets one random mutation: a field replaced by a
@@ -8,6 +8,13 @@ random value (nil, numbers at and past the int64 edges, NaN, strings, huge decla
 shapes, wrong dtypes, truncated array data), an unknown field, the payload cut short, bytes
 flipped, or random bytes. A decoder may accept (the mutation was harmless) or raise
 ProtocolError; any other exception is a bug and is printed with the message that caused it.
+
+``--http N`` then sends N mutated requests to a live `EvaluatorHTTPServer` over raw sockets
+(methods, paths with '..', '//', escapes and NUL bytes, huge or negative Content-Length, header
+floods, truncated requests, random bytes), each from one of the 254 loopback addresses 127.0.0.x
+so that the per-client rate limit does not answer them all. It counts the statuses the server
+answered (its own counts: the client often sees the connection reset before a 400 arrives); a
+bug is a 500 (an exception in a handler), or the page not answering a valid request afterwards.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ from __future__ import annotations
 import argparse
 import collections
 import hashlib
+import socket
 import sys
 import time
 import tracemalloc
@@ -96,10 +104,73 @@ def mutate(payload: bytes, rng: np.random.Generator) -> bytes:
     return msgpack.packb(msg, use_bin_type=True)
 
 
+HTTP_METHODS = ["GET", "HEAD", "POST", "PUT", "DELETE", "OPTIONS", "TRACE", "CONNECT", "get", "G\x00T", "X" * 300]
+HTTP_PATHS = ["/", "/best", "/best/policy", "/top", "/best/../top", "//best", "/%2e%2e/etc/passwd", "/best?run=x",
+              "/best%00", "http://evil/best", "*", "/" + "a" * 9000, "/\xff\xfe", "/best/policy/x", ""]
+
+
+def http_request(rng: np.random.Generator) -> bytes:
+    """One mutated HTTP request (raw bytes)."""
+    kind = int(rng.integers(6))
+    if kind == 0:
+        return bytes(rng.integers(0, 256, int(rng.integers(1, 2000)), dtype=np.uint8))
+    method, path = str(rng.choice(HTTP_METHODS)), str(rng.choice(HTTP_PATHS))
+    version = str(rng.choice(["HTTP/1.1", "HTTP/1.0", "HTTP/9.9", "", "HTTP/1.1 extra"]))
+    headers = ["Host: x"]
+    if kind == 1:
+        headers.append(f"Content-Length: {rng.choice(['-1', '99999999999', 'abc', '10', str(2**63)])}")
+    if kind == 2:
+        headers += [f"X-{i}: {'v' * int(rng.integers(1, 200))}" for i in range(int(rng.integers(50, 200)))]
+    req = (f"{method} {path} {version}\r\n" + "\r\n".join(headers) + "\r\n\r\n").encode("utf-8", "surrogateescape")
+    if kind == 3:
+        req += bytes(rng.integers(0, 256, int(rng.integers(1, 5000)), dtype=np.uint8))  # an unannounced body
+    if kind == 4:
+        req = req[: int(rng.integers(1, len(req)))]  # cut short, then the client closes
+    return req
+
+
+def send_raw(port: int, source: str, data: bytes) -> str:
+    """Send ``data`` from ``source``, close the write side, return the status code ('closed' if none)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5, source_address=(source, 0)) as sock:
+        try:
+            sock.sendall(data)
+            sock.shutdown(socket.SHUT_WR)
+            line = sock.makefile("rb").readline(200)
+        except OSError:
+            return "closed"
+    parts = line.split()
+    return parts[1].decode("ascii", "replace") if len(parts) >= 2 and parts[0].startswith(b"HTTP/") else "closed"
+
+
+def fuzz_http(n: int, rng: np.random.Generator) -> int:
+    """Mutated requests against a live HTTP page; returns the number of bugs."""
+    from forcegrasp_evaluator.endpoint import EvaluatorHTTPServer, Snapshot
+
+    server = EvaluatorHTTPServer("127.0.0.1", 0, lambda: Snapshot.build("fuzz", None, {"members": []})).start()
+    statuses: collections.Counter = collections.Counter()
+    bugs, t0 = 0, time.perf_counter()
+    try:
+        for i in range(n):
+            status = send_raw(server.port, f"127.0.0.{1 + i % 254}", http_request(rng))
+            statuses[status] += 1
+        after = send_raw(server.port, "127.0.0.1", b"GET /top HTTP/1.1\r\nHost: x\r\n\r\n")
+        if after != "200":
+            bugs += 1
+            print(f"BUG http: a valid request after the fuzz got {after}", file=sys.stderr)
+    finally:
+        server.stop()
+    bugs += server.requests_by_status.get("500", 0)
+    print(f"\nHTTP: {n} requests in {time.perf_counter() - t0:.1f} s; bugs {bugs}; the server answered "
+          + ", ".join(f"{k}: {v}" for k, v in sorted(server.requests_by_status.items()))
+          + "; the client read " + ", ".join(f"{k}: {v}" for k, v in sorted(statuses.items())))
+    return bugs
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--messages", type=int, default=100_000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--http", type=int, default=0, help="mutated requests against a live HTTP page (0: none)")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     valid = valid_messages()
@@ -131,6 +202,8 @@ def main(argv=None) -> int:
     print("|---" * (len(reasons) + 2) + "|")
     for kind in kinds:
         print(f"| {kind} | {counts[kind]['accepted']} | " + " | ".join(str(counts[kind][r]) for r in reasons) + " |")
+    if args.http:
+        bugs += fuzz_http(args.http, rng)
     return 1 if bugs else 0
 
 
