@@ -72,6 +72,25 @@ def test_streams_tell_resends_gaps_and_restarts_apart():
     assert streams.stats()["a"]["staleness"] == pytest.approx(9 / 5)  # versions behind: 0, 0, 3, 3, 3
 
 
+def test_replaced_actors_leave_the_acks_and_stats_but_their_resends_stay_duplicates(monkeypatch):
+    """The soak replaced an actor every 5 s, each with a new id: the progress message (20 a second)
+    and the stats would have grown by one entry per actor ever seen."""
+    import forcegrasp.delivery as delivery
+
+    clock = [1000.0]
+    monkeypatch.setattr(delivery.time, "monotonic", lambda: clock[0])
+    streams = Streams()
+    assert streams.admit(_batch(0, actor="old"), 0)
+    clock[0] += delivery.ACTIVE_S / 2
+    assert streams.admit(_batch(0, actor="new"), 0)
+    assert set(streams.acked()) == set(streams.stats()) == {"old", "new"}
+    clock[0] += delivery.ACTIVE_S / 2 + 1  # "old" silent for longer than ACTIVE_S
+    assert set(streams.acked()) == set(streams.stats()) == {"new"}
+    assert "old" in streams.snapshot()  # kept for the checkpoint ...
+    assert not streams.admit(_batch(0, actor="old"), 0)  # ... so a late resend is still a duplicate
+    assert streams.acked()["old"] == (7, 0)  # and the actor is told its ack again
+
+
 def test_a_batch_lost_in_flight_is_sent_again_and_the_hole_never_acknowledged(monkeypatch):
     """A link that drops what was in flight while the learner still looks present: the learner
     holds what came after the hole and acknowledges only up to it; the actor sends the

@@ -125,6 +125,13 @@ class Stream:
     staleness_sum: float = 0.0
     batches: int = 0
     rate_mark: tuple[float, int] = (0.0, 0)
+    last_seen: float = dataclasses.field(default_factory=time.monotonic)  # last batch, new or resent
+
+
+#: Actors silent this long drop out of the progress acknowledgements and the stats: replaced
+#: actors (a new id each, as compose replicas get) would otherwise grow both messages forever.
+#: Their stream state stays, so a late resend is still told apart from new data.
+ACTIVE_S = 60.0
 
 
 class Streams:
@@ -133,10 +140,16 @@ class Streams:
     def __init__(self) -> None:
         self.by_actor: dict[str, Stream] = collections.defaultdict(Stream)
 
+    def active(self, within: float = ACTIVE_S) -> dict[str, Stream]:
+        """The streams that sent a batch in the last ``within`` seconds."""
+        now = time.monotonic()
+        return {a: s for a, s in self.by_actor.items() if s.epoch is not None and now - s.last_seen <= within}
+
     def admit(self, batch: TransitionBatch, policy_version: int) -> bool:
         """Whether ``batch`` is new data (False: a resend already in replay). Counts gaps,
         restarts, and how many policy versions behind the learner the actor acted."""
         s = self.by_actor[batch.actor_id]
+        s.last_seen = time.monotonic()
         if batch.epoch != s.epoch:  # first contact, or a restarted actor counting from 0 again
             if s.epoch is not None:
                 s.restarts += 1
@@ -175,8 +188,8 @@ class Streams:
         return out
 
     def acked(self) -> dict[str, tuple[int, int]]:
-        """Per actor, the (epoch, seq) of the last batch admitted: the progress message's acks."""
-        return {a: (s.epoch, s.last_seq) for a, s in self.by_actor.items() if s.epoch is not None}
+        """Per active actor, the (epoch, seq) of the last batch admitted: the progress message's acks."""
+        return {a: (s.epoch, s.last_seq) for a, s in self.active().items()}
 
     @property
     def gaps(self) -> int:
@@ -184,10 +197,10 @@ class Streams:
         return sum(s.gaps + _holes(s) for s in self.by_actor.values())
 
     def stats(self) -> dict[str, dict]:
-        """Per-actor counters, and each actor's ingest rate since the previous call."""
+        """Per active actor, its counters and its ingest rate since the previous call."""
         now = time.monotonic()
         out = {}
-        for actor_id, s in self.by_actor.items():
+        for actor_id, s in self.active().items():
             t_prev, n_prev = s.rate_mark
             rate = (s.ingested - n_prev) / (now - t_prev) if t_prev else 0.0
             s.rate_mark = (now, s.ingested)
