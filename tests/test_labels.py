@@ -15,7 +15,7 @@ import pytest
 
 from forcegrasp.env import FunctionalGraspEnv
 from forcegrasp.evaluation import placements
-from forcegrasp.label_checks import PALM_CLEARANCE_M, hold_check, lift_check, pregrasp_clearance
+from forcegrasp.label_checks import PALM_CLEARANCE_M, hold_check, lift_check, pregrasp_clearance, pregrasp_palm_error
 from forcegrasp.labeling import hand_object_clearance
 from forcegrasp.scene import ALL_JOINTS
 from forcegrasp.labels import load_label
@@ -77,6 +77,20 @@ def test_pregrasp_is_clear_over_the_whole_jitter_square(name):
     hand, obj = set(ix.hand_geoms), set(ix.object_geoms)
     touching = [c for c in d.contact[: d.ncon] if {c.geom1, c.geom2} & hand and {c.geom1, c.geom2} & obj]
     assert not touching
+
+
+@pytest.mark.parametrize("name", OBJECTS)
+def test_pregrasp_palm_starts_inside_the_palm_tolerance_everywhere(name):
+    """Else the env would fail some placements at their first step, before the policy acts."""
+    label = load_label(name)
+    m = build_model(load_object(name))
+    reach = pregrasp_palm_error(m, label.pregrasp.q, label.goal_palm, jitter=0.02)
+    assert reach["within_palm_tolerance"], reach
+    env = FunctionalGraspEnv(name)
+    for corner in ((0.02, 0.02), (0.02, -0.02), (-0.02, 0.02), (-0.02, -0.02)):
+        env.reset(options={"offset": corner})
+        _, _, terminated, _, info = env.step(np.zeros(env.action_space.shape, np.float32))
+        assert not terminated and info["palm_error"] < env.palm_tolerance, (corner, info)
 
 
 @pytest.mark.parametrize("name", OBJECTS)

@@ -10,7 +10,9 @@ A goal grasp must be a *grasp* (the paper's "both stable and functional"), not a
   two other fingers in contact;
 - :func:`pregrasp_clearance`: at G0 no hand geom touches the object for any placement in the
   ±jitter square (so no placement has to be excluded), and the palm is about 2 cm or more from
-  the object's surface at the nominal placement.
+  the object's surface at the nominal placement;
+- :func:`pregrasp_palm_error`: at G0 the palm is inside the env's palm tolerance of its goal for
+  every placement in the square (else an episode would fail at its first step).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ FINGERS = ("ff", "mf", "rf", "lf", "th")
 HOLD_LIMIT_M = 0.01  # the object may move this much (on the table, or relative to the palm in the air)
 PENETRATION_LIMIT_M = 0.002
 PALM_CLEARANCE_M = 0.02  # the paper: the pre-grasp palm ~2 cm from the object's surface
+PALM_TOLERANCE_M = 0.1  # the env fails an episode whose palm is farther than this from its goal
+PALM_MARGIN_M = 0.005  # what the pre-grasp keeps from that limit at the worst placement
 
 
 def finger_of_body(m: mujoco.MjModel, body: int) -> str | None:
@@ -147,3 +151,17 @@ def pregrasp_clearance(obj: ObjectSpec, q_pre: np.ndarray, jitter: float = 0.02,
     palm = min(mujoco.mj_geomDistance(m, d, h, o, 0.2, None) for h in palm_geoms for o in ix.object_geoms)
     return {"min_clearance_m": float(worst), "worst_offset": worst_at, "palm_distance_m": float(palm),
             "clear": bool(worst > 0.0)}
+
+
+def pregrasp_palm_error(m: mujoco.MjModel, q_pre: np.ndarray, goal_palm: np.ndarray, jitter: float = 0.02,
+                        rest_z: float | None = None) -> dict:
+    """The palm's distance from its goal (relative to the object) at G0, at the nominal placement
+    and at the worst corner of the ±jitter square (the offset adds at most its length)."""
+    d = mujoco.MjData(m)
+    ix = SceneIndex.of(m)
+    place(m, d, ix, q_pre, rest_z=rest_z)
+    mujoco.mj_kinematics(m, d)
+    nominal = float(np.linalg.norm(d.site_xpos[ix.palm_site] - d.xpos[ix.object_body] - goal_palm))
+    worst = nominal + float(np.hypot(jitter, jitter))
+    return {"palm_error_m": nominal, "worst_palm_error_m": worst,
+            "within_palm_tolerance": bool(worst < PALM_TOLERANCE_M - PALM_MARGIN_M)}

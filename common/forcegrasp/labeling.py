@@ -255,7 +255,13 @@ def goal_palm_of(m: mujoco.MjModel, q_goal: np.ndarray) -> np.ndarray:
 def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter: float = 0.02, log=print) -> GraspLabel:
     """Goal by optimisation, pre-grasp by search, checks recorded in the label (``label_checks``)."""
     from forcegrasp.env import FunctionalGraspEnv
-    from forcegrasp.label_checks import PALM_CLEARANCE_M, hold_check, lift_check, pregrasp_clearance
+    from forcegrasp.label_checks import (
+        PALM_CLEARANCE_M,
+        hold_check,
+        lift_check,
+        pregrasp_clearance,
+        pregrasp_palm_error,
+    )
     from forcegrasp.scripted import run_episode
 
     m = build_model(obj)
@@ -281,6 +287,9 @@ def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter
         what = f"  {direction:>11}, retreat {retreat * 100:.0f} cm, opening {opening:.1f}:"
         if hand_object_clearance(m, d, ix) < 0.005:
             continue  # touching, or nearly, at the nominal placement: not worth a closer look
+        reach = pregrasp_palm_error(m, q0, goal_palm, jitter, rest_z)
+        if not reach["within_palm_tolerance"]:
+            continue  # some placement would start beyond the env's palm tolerance and fail at step 1
         square = pregrasp_clearance(obj, q0, jitter)
         if not square["clear"] or square["palm_distance_m"] < PALM_CLEARANCE_M * 0.9:
             log(f"{what} clearance {square['min_clearance_m'] * 1000:.1f} mm over the square, palm "
@@ -293,11 +302,11 @@ def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter
             f"{square['palm_distance_m'] * 1000:.0f} mm away, nominal approach "
             f"{'succeeds' if result['success'] else 'fails (' + str(result['failure']) + ')'}")
         if result["success"]:
-            chosen = (opening, retreat, direction, q0, square, result)
+            chosen = (opening, retreat, direction, q0, square, result, reach)
             break
     if chosen is None:
         raise RuntimeError(f"{obj.name}: no pre-grasp candidate is clear over the jitter square with a clean approach")
-    opening, retreat, direction, q0, square, result = chosen
+    opening, retreat, direction, q0, square, result, reach = chosen
 
     log(f"[3/3] holding the goal grasp for 1 s: on the table at {mass_scale:g}x mass, in the air at 1x and {mass_scale:g}x")
     checks = hold_check(obj, q_goal, mass_scale=mass_scale)
@@ -317,6 +326,8 @@ def label_object(obj: ObjectSpec, mass_scale: float = 5.0, seed: int = 0, jitter
         pregrasp_clearance_m=square["min_clearance_m"],
         pregrasp_palm_distance_m=square["palm_distance_m"],
         pregrasp_clear_over_square=square["clear"],
+        pregrasp_worst_palm_error_m=reach["worst_palm_error_m"],
+        pregrasp_within_palm_tolerance=reach["within_palm_tolerance"],
         nominal_approach_steps=int(result["step"]),
     )
     return GraspLabel(obj.name, Grasp(q0[:6].copy(), q0[6:].copy()), goal, goal_palm, checks)

@@ -31,7 +31,9 @@ def cmd_label(args) -> int:
         f"... at {checks['hold_mass_scale']:g}x mass: {checks['holds_heavy']} (moved {checks['hold_heavy_moved_in_palm_m'] * 1000:.1f} mm)\n"
         f"pre-grasp clear over the whole jitter square: {checks['pregrasp_clear_over_square']} "
         f"(closest {checks['pregrasp_clearance_m'] * 1000:.1f} mm), palm {checks['pregrasp_palm_distance_m'] * 1000:.0f} mm "
-        f"from the object (about 20 mm or more)"
+        f"from the object (about 20 mm or more)\n"
+        f"pre-grasp palm inside the env's palm tolerance at every placement: {checks['pregrasp_within_palm_tolerance']} "
+        f"(worst {checks['pregrasp_worst_palm_error_m'] * 1000:.0f} mm from its goal, limit 95 mm)"
     )
     if args.dry_run:
         return 0 if ok else 1
@@ -49,7 +51,8 @@ def cmd_label(args) -> int:
 def label_ok(checks: dict) -> bool:
     """The checks a label must pass to be written (see forcegrasp.label_checks)."""
     return bool(checks["functional_contact"] and checks["max_penetration_m"] < 0.002 and checks["object_moved_m"] < 0.01
-                and checks["holds"] and checks["pregrasp_clear_over_square"])
+                and checks["holds"] and checks["pregrasp_clear_over_square"]
+                and checks["pregrasp_within_palm_tolerance"])
 
 
 def _save_grasp_picture(name: str, label=None):
