@@ -56,6 +56,7 @@ from forcegrasp.task import (  # noqa: F401  (the layouts are part of this modul
 # A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
 # than this, in m); near some edges of the ±2 cm square it would. Random resets redraw such offsets.
 OVERLAP_TOLERANCE = 1e-4
+_ACTION_LIMIT = 1.0 + 1e-6  # actions are in [-1, 1]; this much float slack is tolerated
 MAX_OFFSET_DRAWS = 100
 
 
@@ -181,6 +182,7 @@ class FunctionalGraspEnv(gym.Env):
         self._base_lo, self._base_hi = self.ix.all_range[:6, 0], self.ix.all_range[:6, 1]
         self._hand_span = self.ix.hand_range[:, 1] - self.ix.hand_range[:, 0]
         self._J0, self._Jg = self.label.pregrasp.hand, self.label.goal.hand
+        self._dJ = self._Jg - self._J0
         # The hot path reads and writes MjData through views made once (each attribute access
         # builds a new array) and through slices: base and hand joints are contiguous blocks.
         d, ix = self.data, self.ix
@@ -194,6 +196,16 @@ class FunctionalGraspEnv(gym.Env):
         self._goal_tail = np.concatenate([self.label.goal.base, self.label.goal_palm]).astype(np.float32)
 
         n_obs = sum(n for _, n in observation_layout(self.force_feedback))
+        # The observation is written into one buffer by slices (a concatenate of 8 parts costs
+        # more than the copy handed out), in Table I's order.
+        self._obs = np.zeros(n_obs, np.float32)
+        self._obs[n_obs - len(self._goal_tail):] = self._goal_tail
+        self._h_scratch = np.zeros(len(self._Jg))
+        # Geom-id lookup tables: numpy's isin on a handful of contacts costs ~10 us, a table ~1 us.
+        self._is_object_geom = np.zeros(self.model.ngeom, bool)
+        self._is_object_geom[self.ix.object_geoms] = True
+        self._is_hand_geom = np.zeros(self.model.ngeom, bool)
+        self._is_hand_geom[self.ix.hand_geoms] = True
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n_obs,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self._renderer = None
@@ -235,16 +247,17 @@ class FunctionalGraspEnv(gym.Env):
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float64)
-        if action.shape != (7,) or not np.abs(action).max() <= 1.0 + 1e-6:  # NaN fails the test too
-            self._reject(action)
+        if action.shape != (7,) or not all(-_ACTION_LIMIT <= a <= _ACTION_LIMIT for a in action.tolist()):
+            self._reject(action)  # NaN fails the comparison too
         delta = action * self._action_scale
         self._prev_pose = self._base_q.copy()
         self._prev_h = self._h_now
         target = self.base_target + delta[:6]
         self.base_target = np.minimum(np.maximum(target, self._base_lo, out=target), self._base_hi, out=target)
-        self.h_command = min(1.0, max(0.0, self.h_command + delta[6]))
-        self._base_ctrl[:] = self.base_target
-        self._hand_ctrl[:] = self.h_command * (self._Jg - self._J0) + self._J0
+        self.h_command = h = min(1.0, max(0.0, self.h_command + float(delta[6])))
+        self._base_ctrl[:] = target
+        np.multiply(self._dJ, h, out=self._hand_ctrl)  # J = h (Jg - J0) + J0, written into d.ctrl
+        self._hand_ctrl += self._J0
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         self.steps += 1
 
@@ -291,18 +304,29 @@ class FunctionalGraspEnv(gym.Env):
         raise ValueError(f"action components must lie in [-1, 1], got {action}")
 
     def _observed_h(self) -> float:
-        self._h_now = 1.0 - 0.5 * float((np.abs(self._hand_q - self._Jg) * self._inv_span).max())
+        x = self._h_scratch
+        np.subtract(self._hand_q, self._Jg, out=x)
+        np.abs(x, out=x)
+        np.multiply(x, self._inv_span, out=x)
+        self._h_now = 1.0 - 0.5 * float(np.maximum.reduce(x))
         return self._h_now
 
     def _observation(self) -> np.ndarray:
+        """Table I (see the module docstring), a fresh array."""
         h = self._observed_h()
-        parts = [self._hand_q, self._base_q, (h,), self.base_target, self._prev_pose, (self._prev_h,), self._goal_tail]
+        obs, i = self._obs, 0
         if self.force_feedback:
-            torques = self._hand_force
+            obs[:24] = self._hand_force
             if self.torque_noise_std > 0:
-                torques = torques + self.np_random.normal(0.0, self.torque_noise_std, 24)
-            parts.insert(0, torques)
-        return np.concatenate(parts, dtype=np.float32)
+                obs[:24] += self.np_random.normal(0.0, self.torque_noise_std, 24)
+            i = 24
+        obs[i:i + 24] = self._hand_q
+        obs[i + 24:i + 30] = self._base_q
+        obs[i + 30] = h
+        obs[i + 31:i + 37] = self.base_target
+        obs[i + 37:i + 43] = self._prev_pose
+        obs[i + 43] = self._prev_h
+        return obs.copy()  # the goal tail (i + 44 on) was written once
 
     def privileged_state(self) -> np.ndarray:
         """`PRIVILEGED_LAYOUT` for the current state (PRIV_DIM float32): what an asymmetric critic may
@@ -316,7 +340,7 @@ class FunctionalGraspEnv(gym.Env):
         if other.size:
             for k, geom in enumerate(self._fingertips):
                 out[8 + k] = float((other == geom).any())
-            out[13] = float(np.isin(other, ix.hand_geoms).any())
+            out[13] = float(self._is_hand_geom[other].any())
         return out
 
     def palm_position(self) -> np.ndarray:
@@ -341,11 +365,14 @@ class FunctionalGraspEnv(gym.Env):
         clear. Uses a scratch MjData: the running episode is not touched."""
         if self._probe is None:
             self._probe = mujoco.MjData(self.model)
-        self._start_pose(self._probe, np.asarray(offset, dtype=float))
+        self._start_pose(self._probe, np.asarray(offset, dtype=float), forward=False)
+        mujoco.mj_kinematics(self.model, self._probe)  # contacts need only geom poses: no full mj_forward
+        mujoco.mj_collision(self.model, self._probe)
         return self._overlap(self._probe)
 
-    def _start_pose(self, d: mujoco.MjData, offset: np.ndarray) -> None:
-        """Pre-grasp hand, object at rest at `offset`, servos holding the pre-grasp; kinematics done."""
+    def _start_pose(self, d: mujoco.MjData, offset: np.ndarray, forward: bool = True) -> None:
+        """Pre-grasp hand, object at rest at `offset`, servos holding the pre-grasp; mj_forward done
+        unless ``forward`` is False."""
         m, ix = self.model, self.ix
         mujoco.mj_resetData(m, d)
         d.qpos[ix.all_qpos] = self.label.pregrasp.q
@@ -353,22 +380,24 @@ class FunctionalGraspEnv(gym.Env):
         d.qpos[ix.object_qpos + 3 : ix.object_qpos + 7] = (1.0, 0.0, 0.0, 0.0)
         d.ctrl[ix.base_act] = self.label.pregrasp.base
         d.ctrl[ix.hand_act] = self._J0
-        mujoco.mj_forward(m, d)
+        if forward:
+            mujoco.mj_forward(m, d)
 
     def _object_contacts(self, d: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """The geoms touching the object in `d` and each contact's distance (negative: penetration)."""
         n = d.ncon
         if n == 0:
             return np.empty(0, int), np.empty(0)
-        g1, g2, dist = d.contact.geom1[:n], d.contact.geom2[:n], d.contact.dist[:n]
-        first = np.isin(g1, self.ix.object_geoms)
-        on_object = first | np.isin(g2, self.ix.object_geoms)
+        contact = d.contact
+        g1, g2, dist = contact.geom1[:n], contact.geom2[:n], contact.dist[:n]
+        first = self._is_object_geom[g1]
+        on_object = first | self._is_object_geom[g2]
         return np.where(first, g2, g1)[on_object], dist[on_object]
 
     def _overlap(self, d: mujoco.MjData) -> float:
         """Deepest hand-object penetration among `d`'s contacts (m), 0 if none."""
         other, dist = self._object_contacts(d)
-        hand = np.isin(other, self.ix.hand_geoms)
+        hand = self._is_hand_geom[other]
         return float(max(0.0, -dist[hand].min())) if hand.any() else 0.0
 
     def render(self):
