@@ -202,10 +202,8 @@ class FunctionalGraspEnv(gym.Env):
         self._obs[n_obs - len(self._goal_tail):] = self._goal_tail
         self._h_scratch = np.zeros(len(self._Jg))
         # Geom-id lookup tables: numpy's isin on a handful of contacts costs ~10 us, a table ~1 us.
-        self._is_object_geom = np.zeros(self.model.ngeom, bool)
-        self._is_object_geom[self.ix.object_geoms] = True
-        self._is_hand_geom = np.zeros(self.model.ngeom, bool)
-        self._is_hand_geom[self.ix.hand_geoms] = True
+        self._is_object_geom, self._is_hand_geom = np.zeros((2, self.model.ngeom), bool)
+        self._is_object_geom[self.ix.object_geoms] = self._is_hand_geom[self.ix.hand_geoms] = True
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, (n_obs,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (7,), np.float32)
         self._renderer = None
@@ -297,17 +295,13 @@ class FunctionalGraspEnv(gym.Env):
 
     # ------------------------------------------------------------------ pieces
     def _reject(self, action: np.ndarray):
-        if action.shape != (7,):
-            raise ValueError(f"action must have shape (7,), got {action.shape}")
-        if not np.all(np.isfinite(action)):
-            raise ValueError(f"action must be finite, got {action}")
-        raise ValueError(f"action components must lie in [-1, 1], got {action}")
+        what = (f"must have shape (7,), got {action.shape}" if action.shape != (7,) else f"must be finite, got {action}"
+                if not np.all(np.isfinite(action)) else f"components must lie in [-1, 1], got {action}")
+        raise ValueError(f"action {what}")
 
     def _observed_h(self) -> float:
         x = self._h_scratch
-        np.subtract(self._hand_q, self._Jg, out=x)
-        np.abs(x, out=x)
-        np.multiply(x, self._inv_span, out=x)
+        np.multiply(np.abs(np.subtract(self._hand_q, self._Jg, out=x), out=x), self._inv_span, out=x)
         self._h_now = 1.0 - 0.5 * float(np.maximum.reduce(x))
         return self._h_now
 
@@ -320,12 +314,8 @@ class FunctionalGraspEnv(gym.Env):
             if self.torque_noise_std > 0:
                 obs[:24] += self.np_random.normal(0.0, self.torque_noise_std, 24)
             i = 24
-        obs[i:i + 24] = self._hand_q
-        obs[i + 24:i + 30] = self._base_q
-        obs[i + 30] = h
-        obs[i + 31:i + 37] = self.base_target
-        obs[i + 37:i + 43] = self._prev_pose
-        obs[i + 43] = self._prev_h
+        obs[i:i + 24], obs[i + 24:i + 30], obs[i + 30] = self._hand_q, self._base_q, h
+        obs[i + 31:i + 37], obs[i + 37:i + 43], obs[i + 43] = self.base_target, self._prev_pose, self._prev_h
         return obs.copy()  # the goal tail (i + 44 on) was written once
 
     def privileged_state(self) -> np.ndarray:
