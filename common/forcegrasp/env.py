@@ -195,11 +195,13 @@ class FunctionalGraspEnv(gym.Env):
         # Goal palm in the world with the object at its nominal pose (origin): Table I's last entry.
         self._goal_tail = np.concatenate([self.label.goal.base, self.label.goal_palm]).astype(np.float32)
 
-        n_obs = sum(n for _, n in observation_layout(self.force_feedback))
-        # The observation is written into one buffer by slices (a concatenate of 8 parts costs
-        # more than the copy handed out), in Table I's order.
+        layout = observation_layout(self.force_feedback)
+        n_obs = sum(n for _, n in layout)
+        # Table I is written into one buffer by slices (cheaper than concatenating 8 parts).
+        edges = np.cumsum([0] + [n for _, n in layout])
+        self._slots = {name: slice(a, b) for (name, _), a, b in zip(layout, edges, edges[1:])}
         self._obs = np.zeros(n_obs, np.float32)
-        self._obs[n_obs - len(self._goal_tail):] = self._goal_tail
+        self._obs[self._slots["goal_pose"].start:] = self._goal_tail
         self._h_scratch = np.zeros(len(self._Jg))
         # Geom-id lookup tables: numpy's isin on a handful of contacts costs ~10 us, a table ~1 us.
         self._is_object_geom, self._is_hand_geom = np.zeros((2, self.model.ngeom), bool)
@@ -308,15 +310,14 @@ class FunctionalGraspEnv(gym.Env):
     def _observation(self) -> np.ndarray:
         """Table I (see the module docstring), a fresh array."""
         h = self._observed_h()
-        obs, i = self._obs, 0
+        obs, at = self._obs, self._slots
         if self.force_feedback:
-            obs[:24] = self._hand_force
+            obs[at["joint_torques"]] = self._hand_force
             if self.torque_noise_std > 0:
-                obs[:24] += self.np_random.normal(0.0, self.torque_noise_std, 24)
-            i = 24
-        obs[i:i + 24], obs[i + 24:i + 30], obs[i + 30] = self._hand_q, self._base_q, h
-        obs[i + 31:i + 37], obs[i + 37:i + 43], obs[i + 43] = self.base_target, self._prev_pose, self._prev_h
-        return obs.copy()  # the goal tail (i + 44 on) was written once
+                obs[at["joint_torques"]] += self.np_random.normal(0.0, self.torque_noise_std, 24)
+        obs[at["joint_angles"]], obs[at["hand_pose"]], obs[at["h"]] = self._hand_q, self._base_q, h
+        obs[at["base_targets"]], obs[at["prev_hand_pose"]], obs[at["prev_h"]] = self.base_target, self._prev_pose, self._prev_h
+        return obs.copy()
 
     def privileged_state(self) -> np.ndarray:
         """`PRIVILEGED_LAYOUT` for the current state (PRIV_DIM float32): what an asymmetric critic may
