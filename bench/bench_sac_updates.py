@@ -25,9 +25,11 @@ import numpy as np
 import torch
 
 
-def synthetic_data(n: int, obs_dim: int, act_dim: int, seed: int = 0):
+def synthetic_data(n: int, obs_dim: int, act_dim: int, priv_dim: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     return {
+        "privileged": rng.standard_normal((n, priv_dim), dtype=np.float32),
+        "next_privileged": rng.standard_normal((n, priv_dim), dtype=np.float32),
         "obs": rng.standard_normal((n, obs_dim), dtype=np.float32),
         "action": rng.uniform(-1, 1, (n, act_dim)).astype(np.float32),
         "reward": rng.standard_normal(n, dtype=np.float32),
@@ -41,9 +43,11 @@ def make_ours(args, data):
     from forcegrasp.sac import SAC, SACConfig
 
     sac = SAC(args.obs, args.act, SACConfig(hidden=tuple(args.hidden), batch_size=args.batch, device=args.device,
-                                            num_threads=args.threads, parallel_branches=False if args.serial else None))
-    buffer = ReplayBuffer(args.obs, args.act, capacity=len(data["reward"]))
-    buffer.add_batch(data["obs"], data["action"], data["reward"], data["next_obs"], data["terminated"])
+                                            num_threads=args.threads, parallel_branches=False if args.serial else None,
+                                            privileged_critic=args.priv > 0), priv_dim=args.priv)
+    buffer = ReplayBuffer(args.obs, args.act, capacity=len(data["reward"]), priv_dim=args.priv)
+    priv = {"privileged": data["privileged"], "next_privileged": data["next_privileged"]} if args.priv else {}
+    buffer.add_batch(data["obs"], data["action"], data["reward"], data["next_obs"], data["terminated"], **priv)
     rng = np.random.default_rng(1)
 
     def run(n):
@@ -54,28 +58,32 @@ def make_ours(args, data):
     return run
 
 
-def make_sb3(args, data):
+def make_sb3(args, data, obs_dim):
+    """SB3's SAC on observations of ``obs_dim`` numbers: ``args.obs`` (its own defaults: one
+    observation for actor and critics), or ``args.obs + args.priv`` (the same critic input as
+    ForceGrasp's asymmetric critic; SB3's actor then sees it too, slightly more work)."""
     import gymnasium as gym
     from stable_baselines3 import SAC as SB3SAC
     from stable_baselines3.common.logger import configure
 
     class SyntheticEnv(gym.Env):  # only its spaces are used: train() never steps it
-        observation_space = gym.spaces.Box(-np.inf, np.inf, (args.obs,), np.float32)
+        observation_space = gym.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
         action_space = gym.spaces.Box(-1.0, 1.0, (args.act,), np.float32)
 
         def reset(self, *, seed=None, options=None):
-            return np.zeros(args.obs, np.float32), {}
+            return np.zeros(obs_dim, np.float32), {}
 
         def step(self, action):
-            return np.zeros(args.obs, np.float32), 0.0, False, False, {}
+            return np.zeros(obs_dim, np.float32), 0.0, False, False, {}
 
     n = len(data["reward"])
     model = SB3SAC("MlpPolicy", SyntheticEnv(), buffer_size=n, batch_size=args.batch, learning_starts=0,
                    policy_kwargs={"net_arch": list(args.hidden)}, device=args.device, seed=0)
     model.set_logger(configure(None, []))
     rb = model.replay_buffer
-    rb.observations[:, 0] = data["obs"]
-    rb.next_observations[:, 0] = data["next_obs"]
+    extra = obs_dim - args.obs  # the privileged values, appended as the asymmetric critic gets them
+    rb.observations[:, 0] = np.concatenate([data["obs"], data["privileged"][:, :extra]], axis=1)
+    rb.next_observations[:, 0] = np.concatenate([data["next_obs"], data["next_privileged"][:, :extra]], axis=1)
     rb.actions[:, 0] = data["action"]
     rb.rewards[:, 0] = data["reward"]
     rb.dones[:, 0] = data["terminated"]
@@ -108,6 +116,9 @@ def main(argv=None) -> int:
     parser.add_argument("--hidden", type=int, nargs="+", default=[256, 256])
     parser.add_argument("--obs", type=int, default=77)
     parser.add_argument("--act", type=int, default=7)
+    parser.add_argument("--priv", type=int, default=None,
+                        help="privileged critic inputs (default: the fast recipe's asymmetric critic, "
+                             "task.PRIV_DIM; 0: the paper's symmetric critic)")
     parser.add_argument("--buffer", type=int, default=100_000, help="filled replay size")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch threads per ForceGrasp gradient branch (default: half the cores, see configure_threads)")
@@ -123,21 +134,27 @@ def main(argv=None) -> int:
     args.device = str(device)
     args.threads = configure_threads(args.threads)
     args.sb3_threads = args.sb3_threads or usable_cores()
+    if args.priv is None:
+        from forcegrasp.task import PRIV_DIM
+        args.priv = PRIV_DIM
     print(f"# {platform.processor() or platform.machine()}, torch {torch.__version__}, device {device}"
           + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""), flush=True)
     print(f"# torch threads: forcegrasp {args.threads} per gradient branch"
           f" ({'serial' if args.serial else 'concurrent branches where >= 2 cores'}), stable-baselines3 {args.sb3_threads}",
           flush=True)
-    print(f"# batch {args.batch}, hidden {args.hidden}, obs {args.obs}, act {args.act}, "
+    print(f"# batch {args.batch}, hidden {args.hidden}, obs {args.obs}, privileged {args.priv}, act {args.act}, "
           f"{args.reps} x {args.updates} updates each, interleaved", flush=True)
     print(f"# {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} at start "
           "(other busy processes slow both learners; compare within one run)", flush=True)
 
-    data = synthetic_data(args.buffer, args.obs, args.act)
+    data = synthetic_data(args.buffer, args.obs, args.act, args.priv)
     learners = {"forcegrasp": make_ours(args, data)}
     if not args.no_sb3:
         import stable_baselines3
-        learners[f"stable-baselines3 {stable_baselines3.__version__}"] = make_sb3(args, data)
+        sb3 = f"stable-baselines3 {stable_baselines3.__version__}"
+        learners[f"{sb3} (obs {args.obs})"] = make_sb3(args, data, args.obs)
+        if args.priv:  # the same critic input as ours
+            learners[f"{sb3} (obs {args.obs}+{args.priv})"] = make_sb3(args, data, args.obs + args.priv)
 
     for name, run in learners.items():  # warm-up: allocator, kernels, optimizer state
         timed(run, max(10, args.updates // 5), device)
@@ -146,7 +163,7 @@ def main(argv=None) -> int:
         line = []
         for name, run in learners.items():
             times[name].append(timed(run, args.updates, device))
-            line.append(f"{name.split()[0]} {times[name][-1] * 1e3:.2f} ms")
+            line.append(f"{name.replace('stable-baselines3', 'sb3')} {times[name][-1] * 1e3:.2f} ms")
         print(f"  rep {rep + 1}/{args.reps}: " + ", ".join(line), flush=True)
 
     print(f"# load average {os.getloadavg()[0]:.2f} at end")
@@ -156,10 +173,12 @@ def main(argv=None) -> int:
     for name, ts in times.items():
         med = statistics.median(ts)
         print(f"| {name} | {med * 1e3:.2f} | {min(ts) * 1e3:.2f} | {1 / med:.0f} |")
-    if len(times) == 2:
-        ours, sb3 = times.values()
-        ratios = [s / o for o, s in zip(ours, sb3)]  # per interleaved pair: same machine state
-        print(f"\nspeed-up over stable-baselines3: {statistics.median(sb3) / statistics.median(ours):.2f}x "
+    ours = times["forcegrasp"]
+    for name, other in times.items():
+        if name == "forcegrasp":
+            continue
+        ratios = [s / o for o, s in zip(ours, other)]  # per interleaved pair: same machine state
+        print(f"\nspeed-up over {name}: {statistics.median(other) / statistics.median(ours):.2f}x "
               f"(ratio of medians); per-repetition ratios {min(ratios):.2f}x to {max(ratios):.2f}x")
     return 0
 

@@ -1,0 +1,94 @@
+"""The recipe's ablation table from `forcegrasp experiment` records: each lever setting, per object
+and force-feedback arm, with held-out success of the evaluator's pick at 10 / 20 / 40 / 60
+minutes, mean and range over seeds, and how many seeds reached each mark.
+
+Levers are read from each record's configuration (recipe preset + [learner.sac] overrides +
+`actor.demo_episodes`) and named by how they differ from the default recipe, so a record says
+itself what it measured. A mark a run never reached is "–", never a guess; the table's last
+column says how long each group's runs were. The label era comes from the file's prefix (the
+grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
+(issue 14; the mug's over-the-top label), `h-` the mug through the handle.
+
+    python bench/ablation_table.py docs/recipe-runs/*.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from collections import defaultdict
+from pathlib import Path
+
+from forcegrasp.recipes import RECIPES
+
+MARKS = (10.0, 20.0, 40.0, 60.0)
+ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
+DEFAULT = RECIPES["fast"]
+
+
+def settings(record: dict) -> dict:
+    """The SAC levers and demonstrations a record trained with."""
+    config = record.get("config") or {}
+    learner = config.get("learner")
+    if learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
+        sac = {"updates_per_step": 0.25}
+    else:
+        sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
+    demos = (config.get("actor") or {}).get("demo_episodes") or 0
+    return {**sac, **({"demo_episodes": demos} if demos else {})}
+
+
+def lever_name(levers: dict) -> str:
+    """How a setting differs from the default recipe, e.g. 'fast', 'fast − privileged_critic'."""
+    diff = [f"{k} = {v}" for k, v in sorted(levers.items()) if DEFAULT.get(k) != v]
+    diff += [f"− {k}" for k in sorted(DEFAULT) if k not in levers]
+    return "fast" + "".join(f", {d}" for d in diff) if diff else "fast (the default)"
+
+
+def success_at(record: dict, minute: float) -> float | None:
+    for mark in record.get("marks", []):
+        if abs(mark["minute"] - minute) < 1e-6:
+            best = mark.get("test", {}).get("best")  # s-base-camera froze only its final pick
+            return None if best is None else best["success_rate"]
+    return None
+
+
+def cell(values: list[float]) -> str:
+    if not values:
+        return "–"
+    mean = 100 * statistics.fmean(values)
+    if len(values) == 1:
+        return f"{mean:.0f} % (n=1)"
+    return f"{mean:.0f} % [{100 * min(values):.0f}–{100 * max(values):.0f}] (n={len(values)})"
+
+
+def table(paths: list[Path]) -> str:
+    groups = defaultdict(list)
+    for path in paths:
+        record = json.loads(path.read_text())
+        if "marks" not in record:  # e.g. a snapshot-spread record
+            continue
+        era = next((e for p, e in ERAS.items() if path.name.startswith(p)), "other")
+        key = (era, record["object"], bool(record["force_feedback"]), lever_name(settings(record)))
+        groups[key].append(record)
+    lines = ["| labels | object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
+             + " | run lengths |", "|---|---|---|---|---|" + "---:|" * len(MARKS) + "---|"]
+    for (era, obj, ff, name), records in sorted(groups.items()):
+        seeds = ", ".join(str(r["seed"]) for r in sorted(records, key=lambda r: r["seed"]))
+        cells = [cell([v for r in records if (v := success_at(r, m)) is not None]) for m in MARKS]
+        lengths = ", ".join(f"{r['marks'][-1]['minute']:.0f}" for r in records) + " min"
+        lines.append(f"| {era} | {obj} | {'yes' if ff else 'no'} | {name} | {seeds} | " + " | ".join(cells)
+                     + f" | {lengths} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("records", nargs="+", type=Path)
+    print(table(parser.parse_args(argv).records))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,41 @@
+"""bench/ablation_table.py: levers are named from each record's own configuration, and a mark a
+run never reached stays empty (never filled from another mark)."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("ablation_table", ROOT / "bench" / "ablation_table.py")
+ablation_table = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(ablation_table)
+
+
+def record(seed, sac, marks, recipe="fast", demos=0):
+    return {"seed": seed, "object": "camera", "force_feedback": True,
+            "config": {"learner": {"recipe": recipe, "sac": sac}, "actor": {"demo_episodes": demos}},
+            "marks": [{"minute": m, "test": {"best": {"episodes": 50, "success_rate": s}}} for m, s in marks]}
+
+
+def test_lever_names_are_differences_from_the_default():
+    name = lambda r: ablation_table.lever_name(ablation_table.settings(r))  # noqa: E731
+    assert name(record(0, {}, [])) == "fast (the default)"
+    assert name(record(0, {"n_step": 3}, [])) == "fast, n_step = 3"
+    assert name(record(0, {}, [], recipe="paper")) == "fast, − privileged_critic, − updates_per_step"
+    assert name(record(0, {}, [], demos=4)) == "fast, demo_episodes = 4"
+
+
+def test_table_pools_seeds_and_leaves_unreached_marks_empty(tmp_path):
+    paths = []
+    for seed, marks in ((0, [(10.0, 0.5), (20.0, 1.0)]), (1, [(10.0, 0.7), (20.0, 0.9), (40.0, 1.0)])):
+        paths.append(tmp_path / f"n-fast-s{seed}.json")
+        paths[-1].write_text(json.dumps(record(seed, {}, marks)))
+    paths.append(tmp_path / "n-fast-spread.json")  # not an experiment record: ignored
+    paths[-1].write_text(json.dumps({"run": "x", "snapshots": []}))
+    row = ablation_table.table(paths).splitlines()[2]
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[:5] == ["human-like labels", "camera", "yes", "fast (the default)", "0, 1"]
+    assert cells[5] == "60 % [50–70] (n=2)"
+    assert cells[6] == "95 % [90–100] (n=2)"
+    assert cells[7] == "100 % (n=1)"
+    assert cells[8] == "–"
