@@ -15,16 +15,19 @@ grasp labels changed twice while the runs were made): `s-` first labels, `n-` hu
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 from collections import defaultdict
 from pathlib import Path
 
 from forcegrasp.recipes import RECIPES
+from forcegrasp.sac import SACConfig
 
 MARKS = (10.0, 20.0, 40.0, 60.0)
 ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
-DEFAULT = RECIPES["fast"]
+OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
+DEFAULT = {**OFF, **RECIPES["fast"]}
 
 
 def settings(record: dict) -> dict:
@@ -40,9 +43,13 @@ def settings(record: dict) -> dict:
 
 
 def lever_name(levers: dict) -> str:
-    """How a setting differs from the default recipe, e.g. 'fast', 'fast − privileged_critic'."""
-    diff = [f"{k} = {v}" for k, v in sorted(levers.items()) if DEFAULT.get(k) != v]
-    diff += [f"− {k}" for k in sorted(DEFAULT) if k not in levers]
+    """How a setting differs from the default recipe, e.g. 'fast', 'fast − privileged_critic'.
+
+    Keys are compared at their effective values (SACConfig's defaults under the recipe), so a lever
+    left out and one set to its SACConfig default are the same setting: "− key"."""
+    levers = {**OFF, **levers}
+    diff = [f"− {k}" if v == OFF.get(k, 0) else f"{k} = {v}"
+            for k, v in sorted(levers.items()) if DEFAULT.get(k, 0) != v]
     return "fast" + "".join(f", {d}" for d in diff) if diff else "fast (the default)"
 
 

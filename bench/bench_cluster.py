@@ -18,6 +18,7 @@ same machine, measured one after the other in one run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import subprocess
 import sys
 import tempfile
@@ -27,6 +28,7 @@ from pathlib import Path
 
 from forcegrasp.protocol import Keys, decode_stats
 from forcegrasp.recipes import RECIPES
+from forcegrasp.sac import SACConfig
 from forcegrasp.transport import QueueSubscriber, close_session, free_tcp_port, open_session
 
 WARMUP = 1000
@@ -63,8 +65,8 @@ def bench_cluster(object_name: str, seconds: float, actors: int, envs: int, reci
     with tempfile.TemporaryDirectory() as tmp:
         run = "bench"
         cmd = [sys.executable, "-m", "forcegrasp.cli", "up", "--no-evaluator", "--stop-after", str(seconds + 60),
-               "--set", f"run.name={run}", "--set", f"run.output_dir={tmp}", "--set", f"env.object={object_name}", "--set", f"learner.recipe={recipe}",
-               "--set", f"actor.num_actors={actors}", "--set", f"actor.envs_per_actor={envs}",
+               "--set", f"run.name={run}", "--set", f"run.output_dir={tmp}", "--set", f"env.object={object_name}",
+               "--set", f"learner.recipe={recipe}", "--set", f"actor.num_actors={actors}", "--set", f"actor.envs_per_actor={envs}",
                "--set", f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "--set", "learner.stats_every_s=1.0",
                "--set", f"learner.sac.learning_starts={WARMUP}", "--set", "learner.checkpoint_every=1000000000"]
         proc = subprocess.Popen(cmd, stdout=open(Path(tmp) / "up.log", "w"), stderr=subprocess.STDOUT)
@@ -101,7 +103,7 @@ def main() -> None:
     parser.add_argument("--envs", type=int, default=4)
     parser.add_argument("--recipe", default="fast", choices=sorted(RECIPES), help="ForceGrasp's SAC preset")
     args = parser.parse_args()
-    utd = float(RECIPES[args.recipe].get("updates_per_step", 1.0))
+    utd = dataclasses.replace(SACConfig(), **RECIPES[args.recipe]).updates_per_step
     sb3_runs = {"stable-baselines3 SAC, its defaults (1 update/step)": 1}
     if utd < 1.0:
         sb3_runs[f"stable-baselines3 SAC, {utd:g} updates/step"] = round(1 / utd)
@@ -110,16 +112,16 @@ def main() -> None:
         print(f"{name}, one process:", flush=True)
         rate = bench_sb3(args.object, args.sb3_steps, freq)
         print(f"  sb3: {rate:.1f} training steps/s", flush=True)
-        rows.append((name, rate, rate / freq, rate))
+        rows.append((name, rate, rate / freq))  # training steps/s = env steps/s for SB3
     print(f"forcegrasp up, recipe {args.recipe} ({utd:g} updates/step): learner + {args.actors} actors x {args.envs} envs:",
           flush=True)
     ingest, updates = bench_cluster(args.object, args.seconds, args.actors, args.envs, args.recipe)
     ours = min(ingest, updates / utd)
     print("\n| system | env steps/s | updates/s | training steps/s |\n|---|---:|---:|---:|")
-    for name, steps, ups, rate in rows:
-        print(f"| {name} | {steps:.1f} | {ups:.1f} | {rate:.1f} |")
+    for name, rate, ups in rows:
+        print(f"| {name} | {rate:.1f} | {ups:.1f} | {rate:.1f} |")
     print(f"| ForceGrasp local cluster, recipe {args.recipe} | {ingest:.1f} | {updates:.1f} | {ours:.1f} |\n")
-    for name, _, _, rate in rows:
+    for name, rate, _ in rows:
         print(f"ratio over {name}: {ours / rate:.2f}x")
 
 
