@@ -349,3 +349,43 @@ def test_update_on_cuda_matches_shapes():
     sac = SAC(OBS, ACT, SACConfig(hidden=(8, 8), device="cuda"))
     metrics = sac.update(random_batch())
     assert all(math.isfinite(v) for v in metrics.values()) and sac.actor.layers[0].weight.is_cuda
+
+
+def test_layer_norm_critic_of_its_own_width_matches_numpy_and_resumes(tmp_path):
+    """critic_hidden / critic_layer_norm: each critic is Linear -> LayerNorm -> ReLU per hidden layer,
+    its own width while the actor keeps `hidden`; the actor-loss path (frozen weights) gives the same
+    Q; the checkpoint restores the layout and its next update is identical."""
+    sac = tiny_sac(critic_hidden=(6, 5, 3), critic_layer_norm=True)
+    assert [layer.out_features for layer in sac.actor.layers[:-1]] == [4, 4]
+    with torch.no_grad():  # non-trivial affine parts, so a missing gain or shift would show
+        for p in [*sac.critic.ln_gains, *sac.critic.ln_shifts]:
+            p.uniform_(-1.5, 1.5)
+    obs, act = random_batch(1).obs, random_batch(1).action
+    x = np.concatenate([obs, act], 1).astype(np.float64)
+    c = sac.critic
+    first = torch.cat([c.obs_weight, c.act_weight], 1)
+    for i in range(2):
+        h = x
+        for k, w in enumerate([first, *c.weights]):
+            h = h @ w[i].detach().double().numpy() + c.biases[k][i, 0].detach().double().numpy()
+            if k < 3:
+                h = (h - h.mean(1, keepdims=True)) / np.sqrt(h.var(1, keepdims=True) + 1e-5)
+                h = np.maximum(h * c.ln_gains[k][i, 0].detach().double().numpy()
+                               + c.ln_shifts[k][i, 0].detach().double().numpy(), 0.0)
+        q = c(torch.as_tensor(obs), torch.as_tensor(act))[i].detach().double().numpy()
+        np.testing.assert_allclose(q, h[:, 0], rtol=1e-4, atol=1e-5)
+    frozen = c.head(c.embed(torch.as_tensor(obs)), torch.as_tensor(act), frozen=True)
+    assert torch.allclose(frozen, c(torch.as_tensor(obs), torch.as_tensor(act)))
+
+    before = [p.detach().clone() for p in c.ln_gains]
+    sac.update(random_batch(2))
+    assert all(not torch.equal(a, b) for a, b in zip(before, c.ln_gains)), "LayerNorm gains are trained"
+    restored, _ = SAC.load_checkpoint(sac.save_checkpoint(tmp_path / "ln.safetensors"))
+    assert restored.config.critic_hidden == (6, 5, 3) and restored.config.critic_layer_norm
+    assert sac.update(random_batch(3)) == restored.update(random_batch(3))
+
+
+@pytest.mark.parametrize("sizes", [(), (4, 0)])
+def test_empty_or_zero_width_networks_are_refused(sizes):
+    with pytest.raises(ValueError, match="hidden"):
+        SACConfig(critic_hidden=sizes)

@@ -60,6 +60,8 @@ class SACConfig:
     batch_size: int = 256
     # Networks.
     hidden: tuple[int, ...] = (256, 256)  # actor and each critic, ReLU
+    critic_hidden: tuple[int, ...] | None = None  # each critic's hidden sizes; None: `hidden`
+    critic_layer_norm: bool = False  # LayerNorm before every critic ReLU (DroQ / RLPD)
     log_std_bounds: tuple[float, float] = (-20.0, 2.0)  # clamp of the actor's log-std
     # Optimisation (Adam).
     actor_lr: float = 3e-4
@@ -85,6 +87,12 @@ class SACConfig:
 
     def __post_init__(self):
         self.hidden = tuple(int(h) for h in self.hidden)
+        if self.critic_hidden is not None:
+            self.critic_hidden = tuple(int(h) for h in self.critic_hidden)
+        for name in ("hidden", "critic_hidden"):
+            sizes = getattr(self, name)
+            if sizes is not None and (not sizes or min(sizes) <= 0):
+                raise ValueError(f"{name} {sizes}: at least one layer, every size positive")
         self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
 
 
@@ -114,13 +122,15 @@ class SAC:
         if self.device.type == "cpu":
             configure_threads(cfg.num_threads)
 
+        critic_hidden = cfg.hidden if cfg.critic_hidden is None else cfg.critic_hidden
         with torch.random.fork_rng(devices=[]):  # seeded init without touching the global RNG
             torch.manual_seed(cfg.seed)
             actor = Actor(obs_dim, act_dim, cfg.hidden, cfg.log_std_bounds, obs_norm=cfg.obs_norm)
-            critic = TwinQ(critic_in, act_dim, cfg.hidden)
+            critic = TwinQ(critic_in, act_dim, critic_hidden, layer_norm=cfg.critic_layer_norm)
         self.actor = actor.to(self.device)
         self.critic = critic.to(self.device)
-        self.critic_target = TwinQ(critic_in, act_dim, cfg.hidden).to(self.device).requires_grad_(False)
+        self.critic_target = TwinQ(critic_in, act_dim, critic_hidden, layer_norm=cfg.critic_layer_norm)
+        self.critic_target = self.critic_target.to(self.device).requires_grad_(False)
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), device=self.device, requires_grad=cfg.autotune_alpha)
         self.target_entropy = -float(act_dim) if cfg.target_entropy is None else float(cfg.target_entropy)
