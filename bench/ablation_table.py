@@ -2,8 +2,8 @@
 and force-feedback arm, with held-out success of the evaluator's pick at 10 / 20 / 40 / 60
 minutes, mean and range over seeds, and how many seeds reached each mark.
 
-Levers are read from each record's configuration (recipe preset + [learner.sac] overrides +
-`actor.demo_episodes`) and named by how they differ from the default recipe, so a record says
+Levers are read from each record's configuration (recipe preset + [learner.sac] overrides + the
+actor and env keys of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they differ from the default recipe, so a record says
 itself what it measured. A mark a run never reached is "–", never a guess; the table's last
 column says how long each group's runs were. The label era comes from the file's prefix (the
 grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
@@ -21,25 +21,30 @@ import statistics
 from collections import defaultdict
 from pathlib import Path
 
+from forcegrasp.config import Config
 from forcegrasp.recipes import RECIPES
 from forcegrasp.sac import SACConfig
 
 MARKS = (10.0, 20.0, 40.0, 60.0)
 ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
+#: Levers outside [learner.sac], by section; named by their key alone.
+RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
+              "env": ("max_translation_step", "max_rotation_step", "max_h_step")}
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
+OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 DEFAULT = {**OFF, **RECIPES["fast"]}
 
 
 def settings(record: dict) -> dict:
-    """The SAC levers and demonstrations a record trained with."""
+    """The SAC levers and the `RUN_LEVERS` a record trained with (those away from their defaults)."""
     config = record.get("config") or {}
     learner = config.get("learner")
     if learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
         sac = {"updates_per_step": 0.25}
     else:
         sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
-    demos = (config.get("actor") or {}).get("demo_episodes") or 0
-    return {**sac, **({"demo_episodes": demos} if demos else {})}
+    run = {key: (config.get(section) or {}).get(key, OFF[key]) for section, keys in RUN_LEVERS.items() for key in keys}
+    return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 
 def lever_name(levers: dict) -> str:

@@ -45,7 +45,7 @@ def sampled_success(path: Path, episodes: int, seed: int) -> float:
     from forcegrasp.policy import Policy
 
     policy = Policy.load(path, seed=seed)
-    env = FunctionalGraspEnv(policy.metadata.object_name, force_feedback=policy.metadata.force_feedback)
+    env = FunctionalGraspEnv.for_policy(policy.metadata)
     wins = 0
     for place in placements(seed, episodes, env.jitter, "test", clear=env.is_clear):
         obs, _ = env.reset(seed=place.seed, options={"offset": place.offset})

@@ -23,6 +23,10 @@ def test_lever_names_are_differences_from_the_default():
     assert name(record(0, {"n_step": 3}, [])) == "fast, n_step = 3"
     assert name(record(0, {}, [], recipe="paper")) == "fast, − privileged_critic, − updates_per_step"
     assert name(record(0, {}, [], demos=4)) == "fast, demo_episodes = 4"
+    more_envs = record(0, {"updates_per_step": 0.1}, [])
+    more_envs["config"]["actor"]["envs_per_actor"] = 16
+    more_envs["config"]["env"] = {"max_translation_step": 0.008, "max_rotation_step": 0.02}  # 0.02: default
+    assert name(more_envs) == "fast, envs_per_actor = 16, max_translation_step = 0.008, updates_per_step = 0.1"
 
 
 def test_table_pools_seeds_and_leaves_unreached_marks_empty(tmp_path):

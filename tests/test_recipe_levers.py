@@ -114,6 +114,36 @@ def test_service_written_policies_carry_the_env_action_scaling(tmp_path):
     assert np.allclose(Policy.load(path).rescale(np.ones(7)), env._action_scale)
 
 
+def test_action_step_sizes_are_a_lever_that_travels_with_the_policy(tmp_path):
+    """env.max_*_step: the actors' envs move by them, the learner's policy files record them, every
+    env rebuilt for a policy file (tests, reports, experiments) uses the file's, and an evaluator
+    whose run uses other step sizes refuses the file."""
+    from forcegrasp.config import EnvConfig, load_config
+    from forcegrasp.runtime import make_env
+    from forcegrasp.task import ACTION_STEPS, check_policy
+    from forcegrasp_learner.learner import LearnerService
+
+    assert tuple(EnvConfig().action_steps().values()) == ACTION_STEPS
+    config = load_config(overrides=[f"run.output_dir={tmp_path}", "run.name=steps", "learner.sac.hidden=[8, 8]",
+                                    "learner.sac.buffer_size=1000", "env.max_translation_step=0.008",
+                                    "env.max_h_step=0.05"])
+    env = make_env(config)
+    env.reset(seed=0)
+    before = (env.base_target.copy(), env.h_command)
+    env.step(np.array([1.0, 0, 0, 0, 0, 0, 1.0]))
+    assert env.base_target[0] - before[0][0] == pytest.approx(0.008)
+    assert env.h_command - before[1] == pytest.approx(0.05)
+
+    _, meta = load_policy_file(LearnerService(config).save_policy())
+    assert meta.action_high == pytest.approx([0.008] * 3 + [ACTION_STEPS[1]] * 3 + [0.05])
+    assert np.allclose(FunctionalGraspEnv.for_policy(meta)._action_scale, env._action_scale)
+    check_policy(meta, "mug", True, config.env.action_steps())
+    with pytest.raises(ValueError, match="action steps"):
+        check_policy(meta, "mug", True)
+    with pytest.raises(Exception, match="max_rotation_step"):
+        load_config(overrides=["env.max_rotation_step=0"])
+
+
 def _batch(n=8, priv=None, horizon=None, obs_dim=77):
     from forcegrasp.protocol import TransitionBatch
 

@@ -50,6 +50,7 @@ from forcegrasp.task import (  # noqa: F401  (the layouts are part of this modul
     PRIV_DIM,
     PRIVILEGED_LAYOUT,
     action_scale,
+    action_steps_of,
     observation_layout,
 )
 
@@ -156,7 +157,9 @@ class FunctionalGraspEnv(gym.Env):
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
-        for name, value in (("mass_scale", mass_scale), ("frame_skip", frame_skip), ("max_steps", max_steps)):
+        for name, value in (("mass_scale", mass_scale), ("frame_skip", frame_skip), ("max_steps", max_steps),
+                            ("max_translation_step", max_translation_step), ("max_rotation_step", max_rotation_step),
+                            ("max_h_step", max_h_step)):
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if not (np.isfinite(jitter) and jitter >= 0) or not (np.isfinite(torque_noise_std) and torque_noise_std >= 0):
@@ -211,6 +214,12 @@ class FunctionalGraspEnv(gym.Env):
         self._renderer = None
         self._probe = None  # scratch MjData for `overlap`
         self._fingertips = [self.ix.fingertip_geoms[f] for f in ("ff", "mf", "rf", "lf", "th")]
+
+    @classmethod
+    def for_policy(cls, meta, **kwargs) -> "FunctionalGraspEnv":
+        """The env a policy file was trained for: its object, observation and action step sizes
+        (``meta`` is its PolicyMetadata); ``kwargs`` set everything else."""
+        return cls(meta.object_name, **{"force_feedback": meta.force_feedback, **action_steps_of(meta), **kwargs})
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):

@@ -92,7 +92,7 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
 def _env(meta, **kwargs):
     from forcegrasp.env import FunctionalGraspEnv
 
-    return FunctionalGraspEnv(meta.object_name, force_feedback=meta.force_feedback, **kwargs)
+    return FunctionalGraspEnv.for_policy(meta, **kwargs)
 
 
 def _job(args) -> tuple[tuple, list[dict]]:

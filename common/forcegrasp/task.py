@@ -44,6 +44,8 @@ PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
 
 #: Largest change per step of the base translation targets (m), rotation targets (rad) and h.
 ACTION_STEPS = (0.004, 0.02, 0.025)
+#: Their names as FunctionalGraspEnv keywords and `env.*` configuration keys.
+ACTION_STEP_KEYS = ("max_translation_step", "max_rotation_step", "max_h_step")
 
 
 def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
@@ -60,10 +62,21 @@ def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_ste
     return np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
 
 
+def action_steps_of(meta: PolicyMetadata) -> dict[str, float]:
+    """The action step sizes a policy was trained with (FunctionalGraspEnv keywords); the paper-era
+    defaults for a file that records none."""
+    if meta.action_high is None:
+        return dict(zip(ACTION_STEP_KEYS, ACTION_STEPS))
+    high = meta.action_high
+    return dict(zip(ACTION_STEP_KEYS, (float(high[0]), float(high[3]), float(high[6]))))
+
+
 def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm: bool = False,
-                    training_steps: int = 0, score: float | None = None, extra: dict | None = None) -> PolicyMetadata:
-    """The metadata of a policy for this task: layouts, action scaling, architecture."""
-    scale = action_scale()
+                    training_steps: int = 0, score: float | None = None, action_steps: dict | None = None,
+                    extra: dict | None = None) -> PolicyMetadata:
+    """The metadata of a policy for this task: layouts, action scaling (``action_steps``: the env's
+    step-size keywords, default `ACTION_STEPS`), architecture."""
+    scale = action_scale(**(action_steps or {}))
     return PolicyMetadata(
         obs_layout=list(observation_layout(force_feedback)),
         action_layout=list(ACTION_LAYOUT),
@@ -79,8 +92,10 @@ def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm:
     )
 
 
-def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_feedback: bool | None = None) -> None:
-    """Raise ValueError saying why a policy does not fit an env with these settings."""
+def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_feedback: bool | None = None,
+                 action_steps: dict | None = None) -> None:
+    """Raise ValueError saying why a policy does not fit an env with these settings (``action_steps``:
+    the env's step-size keywords, default `ACTION_STEPS`)."""
     ff = meta.force_feedback if force_feedback is None else bool(force_feedback)
     if meta.obs_layout != list(observation_layout(ff)):
         raise ValueError(f"policy observes {meta.obs_dim} numbers ({[n for n, _ in meta.obs_layout]}); "
@@ -89,5 +104,6 @@ def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_fee
         raise ValueError(f"policy acts with {meta.act_dim} numbers {meta.action_layout}; the env takes {ACTION_LAYOUT}")
     if object_name is not None and meta.object_name and meta.object_name != object_name:
         raise ValueError(f"policy is for object {meta.object_name!r}, the env holds {object_name!r}")
-    if meta.action_high is not None and not np.allclose(meta.action_high, action_scale()):
-        raise ValueError(f"policy was trained with action steps {meta.action_high}, the env uses {list(action_scale())}")
+    scale = action_scale(**(action_steps or {}))
+    if meta.action_high is not None and not np.allclose(meta.action_high, scale):
+        raise ValueError(f"policy was trained with action steps {meta.action_high}, the env uses {scale.tolist()}")

@@ -94,8 +94,7 @@ def _test_chunk(args) -> list[dict]:
     from forcegrasp.policy import Policy
 
     policy = Policy.load(path)
-    env = FunctionalGraspEnv(policy.metadata.object_name, force_feedback=policy.metadata.force_feedback,
-                             **env_kwargs)
+    env = FunctionalGraspEnv.for_policy(policy.metadata, **env_kwargs)
     return [{"success": r.success, "ret": r.ret, "failure": r.failure, "length": r.length}
             for r in (run_episode(env, policy, p) for p in places)]
 
@@ -110,7 +109,7 @@ def test_files(paths: list[Path], episodes: int, seed: int, env_kwargs: dict, wo
     if not paths:
         return results
     meta = load_policy_file(paths[0])[1]
-    probe = FunctionalGraspEnv(meta.object_name, force_feedback=meta.force_feedback, **env_kwargs)
+    probe = FunctionalGraspEnv.for_policy(meta, **env_kwargs)
     places = placements(seed, episodes, probe.jitter, "test", clear=probe.is_clear)
     chunks = max(1, workers)
     jobs = [(str(p), places[i::chunks], env_kwargs) for p in paths for i in range(chunks)]

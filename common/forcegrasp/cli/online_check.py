@@ -32,8 +32,7 @@ def offline_successes(policy_path: Path, episodes: int, seed: int = 12345, mass_
     from forcegrasp.policy import Policy
 
     policy = Policy.load(policy_path, seed=seed)
-    env = FunctionalGraspEnv(policy.metadata.object_name, force_feedback=policy.metadata.force_feedback,
-                             mass_scale=mass_scale)
+    env = FunctionalGraspEnv.for_policy(policy.metadata, mass_scale=mass_scale)
     out = []
     obs, _ = env.reset(seed=seed)
     while len(out) < episodes:

@@ -64,7 +64,7 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
         kwargs = dict(fixed)
         if key is not None:
             kwargs[key] = value
-        env = FunctionalGraspEnv(meta.object_name, force_feedback=meta.force_feedback, **kwargs)
+        env = FunctionalGraspEnv.for_policy(meta, **kwargs)
         if env.observation_space.shape[0] != meta.obs_dim:
             raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
                              f"{env.observation_space.shape[0]}")

@@ -160,7 +160,7 @@ def grasp_strip(shipped, out: Path, frames: int = 5) -> Path | None:
     from forcegrasp.render import look_at, make_renderer, render, save_png
 
     policy = Policy.load(shipped.path)
-    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback)
+    env = FunctionalGraspEnv.for_policy(policy.metadata)
     renderer = make_renderer(env.model, 240, 320)
 
     def shot():
