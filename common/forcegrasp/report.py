@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -27,6 +28,9 @@ import numpy as np
 from forcegrasp import ASSETS_DIR
 
 POLICIES_DIR = ASSETS_DIR / "policies"
+# Test workers start as fresh interpreters: forked from a process whose torch / OpenMP threads have
+# run (a test session, a report that rendered), a worker can deadlock before its first episode.
+FRESH_WORKERS = multiprocessing.get_context("spawn")
 
 #: Trials per point. The paper ran 100 placements for Fig. 6 and 10 trials per point for Figs. 7-8.
 PROTOCOLS = {
@@ -152,7 +156,7 @@ def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=p
     episodes = sum(len(j[4]) for j in jobs)
     results: dict = {s.name: {} for s in policies}
     t0, done = time.perf_counter(), 0
-    with ProcessPoolExecutor(max_workers=max(1, workers)) as pool:
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=FRESH_WORKERS) as pool:
         futures = [pool.submit(_job, j) for j in jobs]
         for fut in as_completed(futures):
             (name, kind, value), eps = fut.result()

@@ -29,6 +29,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from forcegrasp.report import FRESH_WORKERS
 from forcegrasp.rundir import RunDir
 
 RECORD = RunDir(".").experiment.name
@@ -114,7 +115,7 @@ def test_files(paths: list[Path], episodes: int, seed: int, env_kwargs: dict, wo
     chunks = max(1, workers)
     jobs = [(str(p), places[i::chunks], env_kwargs) for p in paths for i in range(chunks)]
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=max(1, workers)) as pool:
+    with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=FRESH_WORKERS) as pool:
         outs = list(pool.map(_test_chunk, jobs))
     for k, path in enumerate(paths):
         eps = [e for out in outs[k * chunks:(k + 1) * chunks] for e in out]
