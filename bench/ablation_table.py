@@ -22,7 +22,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from forcegrasp.config import Config
-from forcegrasp.recipes import RECIPES
+from forcegrasp.recipes import RECIPES, demo_episodes
 from forcegrasp.sac import SACConfig
 
 MARKS = (10.0, 20.0, 40.0, 60.0)
@@ -32,7 +32,13 @@ RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
               "env": ("max_translation_step", "max_rotation_step", "max_h_step")}
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
+OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`
 DEFAULT = {**OFF, **RECIPES["fast"]}
+
+
+def default_for(object_name: str) -> dict:
+    """The default recipe's settings on one object (demonstrations are per object)."""
+    return {**DEFAULT, "demo_episodes": demo_episodes(object_name, -1)}
 
 
 def settings(record: dict) -> dict:
@@ -44,17 +50,18 @@ def settings(record: dict) -> dict:
     else:
         sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
     run = {key: (config.get(section) or {}).get(key, OFF[key]) for section, keys in RUN_LEVERS.items() for key in keys}
+    run["demo_episodes"] = demo_episodes(record.get("object", ""), run["demo_episodes"])
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 
-def lever_name(levers: dict) -> str:
-    """How a setting differs from the default recipe, e.g. 'fast', 'fast − privileged_critic'.
+def lever_name(levers: dict, object_name: str = "") -> str:
+    """How a setting differs from the default recipe on that object, e.g. 'fast', 'fast − privileged_critic'.
 
     Keys are compared at their effective values (SACConfig's defaults under the recipe), so a lever
     left out and one set to its SACConfig default are the same setting: "− key"."""
-    levers = {**OFF, **levers}
+    levers, default = {**OFF, **levers}, default_for(object_name)
     diff = [f"− {k}" if v == OFF.get(k, 0) else f"{k} = {v}"
-            for k, v in sorted(levers.items()) if DEFAULT.get(k, 0) != v]
+            for k, v in sorted(levers.items()) if default.get(k, 0) != v]
     return "fast" + "".join(f", {d}" for d in diff) if diff else "fast (the default)"
 
 
@@ -82,7 +89,7 @@ def table(paths: list[Path]) -> str:
         if "marks" not in record:  # e.g. a snapshot-spread record
             continue
         era = next((e for p, e in ERAS.items() if path.name.startswith(p)), "other")
-        key = (era, record["object"], bool(record["force_feedback"]), lever_name(settings(record)))
+        key = (era, record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
         groups[key].append(record)
     lines = ["| labels | object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
              + " | run lengths |", "|---|---|---|---|---|" + "---:|" * len(MARKS) + "---|"]

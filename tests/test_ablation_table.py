@@ -18,11 +18,14 @@ def record(seed, sac, marks, recipe="fast", demos=0):
 
 
 def test_lever_names_are_differences_from_the_default():
-    name = lambda r: ablation_table.lever_name(ablation_table.settings(r))  # noqa: E731
+    name = lambda r: ablation_table.lever_name(ablation_table.settings(r), r["object"])  # noqa: E731
     assert name(record(0, {}, [])) == "fast (the default)"
     assert name(record(0, {"n_step": 3}, [])) == "fast, n_step = 3"
     assert name(record(0, {}, [], recipe="paper")) == "fast, − privileged_critic, − updates_per_step"
     assert name(record(0, {}, [], demos=4)) == "fast, demo_episodes = 4"
+    mug = lambda demos: {**record(0, {}, [], demos=demos), "object": "mug"}  # noqa: E731
+    assert name(mug(4)) == name(mug(-1)) == "fast (the default)"  # the mug's default has demonstrations
+    assert name(mug(0)) == "fast, − demo_episodes"
     more_envs = record(0, {"updates_per_step": 0.1}, [])
     more_envs["config"]["actor"]["envs_per_actor"] = 16
     more_envs["config"]["env"] = {"max_translation_step": 0.008, "max_rotation_step": 0.02}  # 0.02: default

@@ -244,3 +244,21 @@ def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures():
     assert (batch.reward > 500).sum() == 2 and batch.terminated.sum() >= 2  # two bonuses, two ends
     assert batch.privileged.shape == (400, 14)
     assert batch.episode_successes is None or not batch.episode_successes.any()
+
+
+@pytest.mark.parametrize("obj, configured, expected", [("mug", None, 4), ("camera", None, 0), ("mug", 0, 0),
+                                                        ("camera", 2, 2)])
+def test_demonstrations_default_to_the_recipes_number_for_the_object(obj, configured, expected):
+    """`actor.demo_episodes = -1` (the default): the mug's envs owe 4 demonstrations each, other
+    objects' none; a number the user sets is taken as it is."""
+    from forcegrasp.acting import Actor
+    from forcegrasp.config import load_config
+
+    overrides = [f"env.object={obj}", "actor.envs_per_actor=2"]
+    if configured is not None:
+        overrides.append(f"actor.demo_episodes={configured}")
+    config = load_config(env={}, overrides=overrides)
+    assert config.actor.demo_episodes == (-1 if configured is None else configured)
+    actor = Actor(config, "a", seed=0)
+    assert actor._demos_left == [expected, expected]
+    assert (actor._demo[0] is not None) == (expected > 0)

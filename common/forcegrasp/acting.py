@@ -3,7 +3,8 @@ transitions packed into batches for the learner. No network: the actor service s
 over Zenoh and feeds it the learner's broadcasts; ``forcegrasp train`` hands them to a learner in
 the same process.
 
-- With ``actor.demo_episodes`` each env first plays that many episodes of the scripted approach
+- With ``actor.demo_episodes`` (default: the recipe's number for the object,
+  `forcegrasp.recipes.OBJECT_DEMOS`) each env first plays that many episodes of the scripted approach
   (`forcegrasp.scripted`) *told the true object offset*: demonstrations that put the success
   bonus into the replay buffer from the start (prior data, as in RLPD). The offset is simulator
   knowledge the deployed policy never sees; the demonstrations are counted apart from the
@@ -28,7 +29,7 @@ from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.protocol import TransitionBatch
 from forcegrasp.runtime import make_env
-from forcegrasp.recipes import sac_config
+from forcegrasp.recipes import demo_episodes, sac_config
 from forcegrasp.scripted import ScriptedApproach
 
 
@@ -57,7 +58,7 @@ class Actor:
         self._ended: list[tuple[float, int, bool]] = []
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, dtype=np.int64)
-        self._demos_left = [config.actor.demo_episodes] * n
+        self._demos_left = [demo_episodes(config.env.object, config.actor.demo_episodes)] * n
         self._demo = [self._new_demo(i) for i in range(n)]
         self.demo_episodes = self.demo_successes = 0
 

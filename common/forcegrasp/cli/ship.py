@@ -21,6 +21,7 @@ from pathlib import Path
 def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
     from forcegrasp.cli.experiment import load_record, test_files
     from forcegrasp.policy_file import load_policy_file
+    from forcegrasp.recipes import demo_episodes
 
     record = load_record(run_dir)
     if record is None:
@@ -50,8 +51,10 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
         "held_out": {"episodes": score["episodes"], "success_rate": score["success_rate"],
                      "mean_return": round(score["mean_return"], 2), "stream": "test", "seed": record.get("test_seed", 0)},
         "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
-                   "actor": {k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor", "demo_episodes")
-                             if k in record["config"]["actor"]}},
+                   "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
+                                if k in record["config"]["actor"]},
+                             "demo_episodes": demo_episodes(meta.object_name,
+                                                            record["config"]["actor"].get("demo_episodes", 0))}},
         "env": record["config"]["env"],
         "run": {"name": record["config"]["run"]["name"], "label": record.get("label"),
                 "machine": "2 CPU cores, no GPU; learner, 2 actors x 8 envs and the evaluator"},
