@@ -142,6 +142,8 @@ def test_action_step_sizes_are_a_lever_that_travels_with_the_policy(tmp_path):
         check_policy(meta, "mug", True)
     with pytest.raises(Exception, match="max_rotation_step"):
         load_config(overrides=["env.max_rotation_step=0"])
+    with pytest.raises(ValueError, match="max_h_step must be positive"):
+        FunctionalGraspEnv("mug", max_h_step=float("nan"))
 
 
 def _batch(n=8, priv=None, horizon=None, obs_dim=77):

@@ -42,7 +42,7 @@ import numpy as np
 
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
-from forcegrasp.scene import SceneIndex, build_model, resting_height, slide_axes
+from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
     ACTION_LAYOUT,
     ACTION_STEPS,
@@ -157,9 +157,7 @@ class FunctionalGraspEnv(gym.Env):
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
-        for name, value in (("mass_scale", mass_scale), ("frame_skip", frame_skip), ("max_steps", max_steps),
-                            ("max_translation_step", max_translation_step), ("max_rotation_step", max_rotation_step),
-                            ("max_h_step", max_h_step)):
+        for name, value in (("mass_scale", mass_scale), ("frame_skip", frame_skip), ("max_steps", max_steps)):
             if not np.isfinite(value) or value <= 0:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if not (np.isfinite(jitter) and jitter >= 0) or not (np.isfinite(torque_noise_std) and torque_noise_std >= 0):
@@ -189,9 +187,9 @@ class FunctionalGraspEnv(gym.Env):
         # The hot path reads and writes MjData through views made once (each attribute access
         # builds a new array) and through slices: base and hand joints are contiguous blocks.
         d, ix = self.data, self.ix
-        self._base_q, self._hand_q = _block(d.qpos, ix.base_qpos), _block(d.qpos, ix.hand_qpos)
-        self._base_ctrl, self._hand_ctrl = _block(d.ctrl, ix.base_act), _block(d.ctrl, ix.hand_act)
-        self._hand_force = _block(d.actuator_force, ix.hand_act)
+        self._base_q, self._hand_q = block_view(d.qpos, ix.base_qpos), block_view(d.qpos, ix.hand_qpos)
+        self._base_ctrl, self._hand_ctrl = block_view(d.ctrl, ix.base_act), block_view(d.ctrl, ix.hand_act)
+        self._hand_force = block_view(d.actuator_force, ix.hand_act)
         self._object_pos = d.xpos[ix.object_body]
         self._palm_pos = d.site_xpos[ix.palm_site]
         self._inv_span = 1.0 / self._hand_span
@@ -414,15 +412,6 @@ class FunctionalGraspEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
-
-
-def _block(array: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """A view of ``array[index]`` when the indices are one contiguous run (MuJoCo keeps a body's
-    joints and a model's actuators in order); fancy indexing, which copies, only otherwise."""
-    index = np.asarray(index)
-    if index.size and np.array_equal(index, np.arange(index[0], index[0] + index.size)):
-        return array[index[0] : index[0] + index.size]
-    raise ValueError("the env expects contiguous base and hand blocks in qpos and ctrl")
 
 
 def register_envs() -> None:

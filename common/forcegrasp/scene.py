@@ -245,3 +245,13 @@ def resting_height(m: mujoco.MjModel, seconds: float = 0.3) -> float:
     for _ in range(int(seconds / m.opt.timestep)):
         mujoco.mj_step(m, d)
     return float(d.qpos[ix.object_qpos + 2])
+
+
+def block_view(array: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """A view of ``array[index]`` when the indices are one contiguous run (MuJoCo keeps a body's
+    joints and a model's actuators in order); anything else is refused, since the copy that fancy
+    indexing makes would silently stop tracking MjData."""
+    index = np.asarray(index)
+    if index.size and np.array_equal(index, np.arange(index[0], index[0] + index.size)):
+        return array[index[0] : index[0] + index.size]
+    raise ValueError("expected contiguous base and hand blocks in qpos and ctrl")

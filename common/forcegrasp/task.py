@@ -59,6 +59,9 @@ def obs_dim(force_feedback: bool = True) -> int:
 def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
                  max_h_step: float = ACTION_STEPS[2]) -> np.ndarray:
     """What action +1 means in env units, per component: the policy file's ``action_high``."""
+    for name, step in zip(ACTION_STEP_KEYS, (max_translation_step, max_rotation_step, max_h_step)):
+        if not np.isfinite(step) or step <= 0:
+            raise ValueError(f"{name} must be positive, got {step!r}")
     return np.array([max_translation_step] * 3 + [max_rotation_step] * 3 + [max_h_step])
 
 
