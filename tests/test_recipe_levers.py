@@ -1,6 +1,9 @@
 """The recipe's levers at the learner core: observation normalisation frozen into policy files,
 the asymmetric critic whose policy needs no privileged input, and their checkpoints."""
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -13,6 +16,7 @@ from forcegrasp.normalization import RunningMeanStd
 from forcegrasp.sac import SAC, SACConfig
 
 OBS, ACT, PRIV = 6, 2, 4
+REPO = Path(__file__).resolve().parents[1]
 
 
 def filled_buffer(priv_dim=PRIV, n=300, seed=0):
@@ -144,6 +148,24 @@ def test_action_step_sizes_are_a_lever_that_travels_with_the_policy(tmp_path):
         load_config(overrides=["env.max_rotation_step=0"])
     with pytest.raises(ValueError, match="max_h_step must be positive"):
         FunctionalGraspEnv("mug", max_h_step=float("nan"))
+
+
+def test_policy_files_of_earlier_step_sizes_still_run_at_their_own():
+    """The default step sizes grew 1.5x on 2026-12-03: the shipped policies, trained at the first
+    sizes, record them and are rebuilt at them; an env at today's default refuses them clearly; a
+    file recording no sizes at all is taken to be of the first sizes."""
+    from forcegrasp.task import ACTION_STEPS, FIRST_ACTION_STEPS, action_steps_of, check_policy
+
+    assert ACTION_STEPS == pytest.approx(tuple(1.5 * x for x in FIRST_ACTION_STEPS))
+    _, meta = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")
+    assert tuple(action_steps_of(meta).values()) == pytest.approx(FIRST_ACTION_STEPS)
+    assert FunctionalGraspEnv.for_policy(meta)._action_scale[[0, 3, 6]] == pytest.approx(FIRST_ACTION_STEPS)
+    check_policy(meta, "mug", True, dict(zip(("max_translation_step", "max_rotation_step", "max_h_step"),
+                                             FIRST_ACTION_STEPS)))
+    with pytest.raises(ValueError, match="action steps"):
+        check_policy(meta, "mug", True)
+    unrecorded = dataclasses.replace(meta, action_high=None, action_low=None)
+    assert tuple(action_steps_of(unrecorded).values()) == FIRST_ACTION_STEPS
 
 
 def _batch(n=8, priv=None, horizon=None, obs_dim=77):

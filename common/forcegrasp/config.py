@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from forcegrasp.task import ACTION_STEPS
+
 ENV_PREFIX = "FORCEGRASP_"
 CONFIG_FILE_ENV = "FORCEGRASP_CONFIG"
 
@@ -62,10 +64,11 @@ class EnvConfig:
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
     torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
     max_steps: int = _f(200, "episode length limit", min=1)
-    # Action step sizes: what action +1 moves per step (a recipe lever; policy files record them).
-    max_translation_step: float = _f(0.004, "base translation per step at action +1, metres", min=1e-6)
-    max_rotation_step: float = _f(0.02, "base rotation per step at action +1, radians", min=1e-6)
-    max_h_step: float = _f(0.025, "pre-grasp-to-goal hand interpolation per step at action +1", min=1e-6)
+    # Action step sizes: what action +1 moves per step (a recipe lever; policy files record them;
+    # task.ACTION_STEPS is the one place their defaults live).
+    max_translation_step: float = _f(ACTION_STEPS[0], "base translation per step at action +1, metres", min=1e-6)
+    max_rotation_step: float = _f(ACTION_STEPS[1], "base rotation per step at action +1, radians", min=1e-6)
+    max_h_step: float = _f(ACTION_STEPS[2], "pre-grasp-to-goal hand interpolation per step at action +1", min=1e-6)
 
     def action_steps(self) -> dict[str, float]:
         """The step sizes as FunctionalGraspEnv / `forcegrasp.task.action_scale` keywords."""

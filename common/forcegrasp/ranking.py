@@ -31,7 +31,7 @@ from forcegrasp.config import Config
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
 from forcegrasp.rundir import RunDir, policy_file_name, step_of
-from forcegrasp.task import ACTION_STEPS, check_policy
+from forcegrasp.task import FIRST_ACTION_STEPS, check_policy
 from forcegrasp.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
@@ -123,8 +123,8 @@ class Ranker:
         e, ev = self.config.env, self.config.evaluator
         return {"object": e.object, "force_feedback": e.force_feedback, "mass_scale": e.mass_scale,
                 "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
-                # recorded only when not the defaults, so that earlier runs' scores stay valid
-                **({} if tuple(e.action_steps().values()) == ACTION_STEPS else e.action_steps()),
+                # recorded only when not the first sizes, so that earlier runs' scores stay valid
+                **({} if tuple(e.action_steps().values()) == FIRST_ACTION_STEPS else e.action_steps()),
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
                 "final_rank_episodes": ev.final_rank_episodes,
                 # the placements themselves: a change in how they are drawn (e.g. which offsets
