@@ -7,7 +7,9 @@ actor and env keys of `RUN_LEVERS`: demonstrations, environments per actor, acti
 itself what it measured. A mark a run never reached is "–", never a guess; the table's last
 column says how long each group's runs were. The label era comes from the file's prefix (the
 grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
-(issue 14; the mug's over-the-top label), `h-` the mug through the handle.
+(issue 14; the mug's over-the-top label), `h-` the mug through the handle. The action step sizes
+became 1.5x on 2026-12-03: a record that names none ran at the first sizes, and runs at those read
+"first action steps".
 
     python bench/ablation_table.py docs/recipe-runs/*.json
 """
@@ -24,6 +26,7 @@ from pathlib import Path
 from forcegrasp.config import Config
 from forcegrasp.recipes import RECIPES, demo_episodes
 from forcegrasp.sac import SACConfig
+from forcegrasp.task import ACTION_STEP_KEYS, FIRST_ACTION_STEPS
 
 MARKS = (10.0, 20.0, 40.0, 60.0)
 ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
@@ -49,7 +52,8 @@ def settings(record: dict) -> dict:
         sac = {"updates_per_step": 0.25}
     else:
         sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
-    run = {key: (config.get(section) or {}).get(key, OFF[key]) for section, keys in RUN_LEVERS.items() for key in keys}
+    missing = {**OFF, **dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS))}  # records from before the step keys
+    run = {key: (config.get(section) or {}).get(key, missing[key]) for section, keys in RUN_LEVERS.items() for key in keys}
     run["demo_episodes"] = demo_episodes(record.get("object", ""), run["demo_episodes"])
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
@@ -60,8 +64,11 @@ def lever_name(levers: dict, object_name: str = "") -> str:
     Keys are compared at their effective values (SACConfig's defaults under the recipe), so a lever
     left out and one set to its SACConfig default are the same setting: "− key"."""
     levers, default = {**OFF, **levers}, default_for(object_name)
+    first_steps = tuple(levers[k] for k in ACTION_STEP_KEYS) == FIRST_ACTION_STEPS
     diff = [f"− {k}" if v == OFF.get(k, 0) else f"{k} = {v}"
-            for k, v in sorted(levers.items()) if default.get(k, 0) != v]
+            for k, v in sorted(levers.items()) if default.get(k, 0) != v and not (first_steps and k in ACTION_STEP_KEYS)]
+    if first_steps and FIRST_ACTION_STEPS != tuple(default[k] for k in ACTION_STEP_KEYS):
+        diff = sorted(diff + ["first action steps"])
     return "fast" + "".join(f", {d}" for d in diff) if diff else "fast (the default)"
 
 

@@ -9,11 +9,13 @@ ROOT = Path(__file__).resolve().parents[1]
 spec = importlib.util.spec_from_file_location("ablation_table", ROOT / "bench" / "ablation_table.py")
 ablation_table = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(ablation_table)
+STEPS = {"max_translation_step": 0.006, "max_rotation_step": 0.03, "max_h_step": 0.0375}  # today's default
 
 
 def record(seed, sac, marks, recipe="fast", demos=0):
     return {"seed": seed, "object": "camera", "force_feedback": True,
-            "config": {"learner": {"recipe": recipe, "sac": sac}, "actor": {"demo_episodes": demos}},
+            "config": {"learner": {"recipe": recipe, "sac": sac}, "actor": {"demo_episodes": demos},
+                       "env": dict(STEPS)},
             "marks": [{"minute": m, "test": {"best": {"episodes": 50, "success_rate": s}}} for m, s in marks]}
 
 
@@ -28,8 +30,14 @@ def test_lever_names_are_differences_from_the_default():
     assert name(mug(0)) == "fast, − demo_episodes"
     more_envs = record(0, {"updates_per_step": 0.1}, [])
     more_envs["config"]["actor"]["envs_per_actor"] = 16
-    more_envs["config"]["env"] = {"max_translation_step": 0.008, "max_rotation_step": 0.02}  # 0.02: default
+    more_envs["config"]["env"] = {**STEPS, "max_translation_step": 0.008}
     assert name(more_envs) == "fast, envs_per_actor = 16, max_translation_step = 0.008, updates_per_step = 0.1"
+    # records from before the step keys, and runs at the first sizes, say so in one term
+    earlier = record(0, {"n_step": 3}, [])
+    del earlier["config"]["env"]
+    assert name(earlier) == "fast, first action steps, n_step = 3"
+    earlier["config"]["env"] = {"max_translation_step": 0.004, "max_rotation_step": 0.02, "max_h_step": 0.025}
+    assert name(earlier) == "fast, first action steps, n_step = 3"
 
 
 def test_table_pools_seeds_and_leaves_unreached_marks_empty(tmp_path):
