@@ -168,6 +168,23 @@ def test_policy_files_of_earlier_step_sizes_still_run_at_their_own():
     assert tuple(action_steps_of(unrecorded).values()) == FIRST_ACTION_STEPS
 
 
+def test_an_actor_refuses_weights_of_other_step_sizes():
+    """An actor started with other step sizes than the learner's would act at the wrong scale and
+    send transitions that mean something else: it refuses the weights (the service counts them)."""
+    from forcegrasp.acting import Actor
+    from forcegrasp.config import load_config
+    from forcegrasp.task import action_steps_of
+
+    weights, meta = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")  # first sizes
+    actor = Actor(load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=1"]), "a", seed=0)
+    with pytest.raises(ValueError, match="action steps"):
+        actor.update(weights, meta, 1)
+    assert actor.policy is None
+    first = [f"env.{k}={v}" for k, v in action_steps_of(meta).items()]
+    actor = Actor(load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=1", *first]), "a", seed=0)
+    assert actor.update(weights, meta, 1) and actor.policy is not None
+
+
 def _batch(n=8, priv=None, horizon=None, obs_dim=77):
     from forcegrasp.protocol import TransitionBatch
 

@@ -71,9 +71,15 @@ class Actor:
 
     def update(self, params: dict[str, np.ndarray], meta: PolicyMetadata, version: int) -> bool:
         """Swap in a newer policy; False for one older than ours. Raises ValueError for a policy
-        of another shape than this actor's envs."""
+        of another shape than this actor's envs, or one trained with other action step sizes (an
+        actor started with another configuration would otherwise act, and send transitions, at the
+        wrong scale)."""
         if meta.obs_dim != self.obs_dim or meta.act_dim != self.act_dim:
             raise ValueError(f"policy is {meta.obs_dim}->{meta.act_dim}, env is {self.obs_dim}->{self.act_dim}")
+        scale = self.envs[0].action_scale
+        if meta.action_high is not None and not np.allclose(meta.action_high, scale):
+            raise ValueError(f"policy was trained with action steps {meta.action_high}, this actor's envs use "
+                             f"{scale.tolist()} (env.max_*_step)")
         if version <= self.policy_version and self.policy is not None:
             return False  # an older broadcast overtaken by a query reply, say
         self.policy = Policy.from_weights(params, meta, seed=int(self.rng.integers(2**31)))

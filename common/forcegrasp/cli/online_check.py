@@ -48,6 +48,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
     """Episodes reported by a real actor process acting with the frozen policy file."""
     from forcegrasp.config import load_config
     from forcegrasp.policy_file import load_policy_file
+    from forcegrasp.task import action_steps_of
     from forcegrasp.protocol import Keys, ProtocolError, Weights, decode_transitions, encode_weights
     from forcegrasp.transport import (QueueSubscriber, close_session, declare_queryable, free_tcp_port,
                                       open_session)
@@ -60,6 +61,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
         f"actor.envs_per_actor={envs}", "actor.random_steps=0", "actor.publish_batch=64",
         f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "network.lease_ms=1000",
         f"learner.sac.obs_norm={str(meta.obs_norm).lower()}",
+        *(f"env.{k}={v}" for k, v in action_steps_of(meta).items()),  # the file's step sizes, not today's
     ])
     keys = Keys(run)
     payload = encode_weights(Weights(1, 0, weights, meta={"policy_metadata": meta.to_json()}))
