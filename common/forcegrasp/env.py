@@ -219,11 +219,6 @@ class FunctionalGraspEnv(gym.Env):
         (``meta`` is its PolicyMetadata); ``kwargs`` set everything else."""
         return cls(meta.object_name, **{"force_feedback": meta.force_feedback, **action_steps_of(meta), **kwargs})
 
-    @property
-    def action_scale(self) -> np.ndarray:
-        """What action +1 moves per step, per component (a policy file's ``action_high``)."""
-        return self._action_scale.copy()
-
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start at the pre-grasp with the object shifted by ``options["offset"]`` (dx, dy) in m, or

@@ -24,7 +24,7 @@ class ScriptedApproach:
             (label.goal.base + shift, 1.0, approach_steps),
         ]
         self.start_base = label.pregrasp.base.copy()
-        self.scale = env.action_scale
+        self.scale = env._action_scale
         self.k = 0
 
     def _plan(self, k: int) -> tuple[np.ndarray, float]:
