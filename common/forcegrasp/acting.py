@@ -76,10 +76,7 @@ class Actor:
         wrong scale)."""
         if meta.obs_dim != self.obs_dim or meta.act_dim != self.act_dim:
             raise ValueError(f"policy is {meta.obs_dim}->{meta.act_dim}, env is {self.obs_dim}->{self.act_dim}")
-        scale = task.action_scale(**self.config.env.action_steps())  # what make_env gave the envs
-        if meta.action_high is not None and not np.allclose(meta.action_high, scale):
-            raise ValueError(f"policy was trained with action steps {meta.action_high}, this actor's envs use "
-                             f"{scale.tolist()} (env.max_*_step)")
+        task.check_action_steps(meta, self.config.env.action_steps())  # the sizes make_env gave the envs
         if version <= self.policy_version and self.policy is not None:
             return False  # an older broadcast overtaken by a query reply, say
         self.policy = Policy.from_weights(params, meta, seed=int(self.rng.integers(2**31)))
