@@ -32,7 +32,7 @@ MARKS = (10.0, 20.0, 40.0, 60.0)
 ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
 #: Levers outside [learner.sac], by section; named by their key alone.
 RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
-              "env": ("max_translation_step", "max_rotation_step", "max_h_step")}
+              "env": ("max_translation_step", "max_rotation_step", "max_h_step", "torque_history")}
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`

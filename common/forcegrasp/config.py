@@ -64,6 +64,8 @@ class EnvConfig:
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
     torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
     max_steps: int = _f(200, "episode length limit", min=1)
+    torque_history: int = _f(0, "joint torques of this many previous steps added to the observation (24 each; "
+                                "changes Table I: a lever reported apart, never the default)", min=0)
     # Action step sizes: what action +1 moves per step (a recipe lever; policy files record them;
     # task.ACTION_STEPS is the one place their defaults live).
     max_translation_step: float = _f(ACTION_STEPS[0], "base translation per step at action +1, metres", min=1e-6)
@@ -376,6 +378,8 @@ def _check_cross_fields(config: Config) -> None:
         # object and are restarted forever says less than one line.
         raise ConfigError(f"env.object: unknown object {config.env.object!r}; valid objects: "
                           f"{', '.join(list_objects())}")
+    if config.env.torque_history and not config.env.force_feedback:
+        raise ConfigError("env.torque_history needs env.force_feedback = true: without it no torques are observed")
     if not config.network.learner_listen:
         raise ConfigError("network.learner_listen: at least one endpoint is needed")
     for key in ("learner_listen", "connect", "listen"):

@@ -17,7 +17,10 @@ Observation (Table I; 77 float32, 53 without force feedback), in this order:
     goal_palm              3    goal palm position in the world (object at its nominal pose)
     ====================  ====  =================================================================
 
-Nothing about the object's pose, geometry or mass is observed: the jitter is only felt.
+Nothing about the object's pose, geometry or mass is observed: the jitter is only felt. With
+``torque_history`` k > 0 (a recipe lever outside Table I, never the default) a ``torque_history``
+segment of 24 k follows ``joint_torques``: the torques observed at the k previous steps, newest first
+(at reset, copies of the first reading).
 
 Action (7, in [-1, 1]): increments of the 6 base targets (scaled by ``max_translation_step`` m
 and ``max_rotation_step`` rad) and of the commanded h (by ``max_h_step``); the 24 hand joints
@@ -33,15 +36,13 @@ Failures and aborts are terminal states (``terminated=True``); only the step lim
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import gymnasium as gym
 import mujoco
 import numpy as np
 
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
+from forcegrasp.reward import Outcome, RewardWeights, evaluate_state, observed_h  # noqa: F401  (part of this module's API)
 from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
     ACTION_LAYOUT,
@@ -52,6 +53,7 @@ from forcegrasp.task import (  # noqa: F401  (the layouts are part of this modul
     action_scale,
     action_steps_of,
     observation_layout,
+    torque_history_of,
 )
 
 # A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
@@ -70,65 +72,6 @@ def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, wh
             return offset
     raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
                        "in a row; relabel the pre-grasp")
-
-
-@dataclass(frozen=True)
-class RewardWeights:
-    w: float = 1.5
-    wa: float = 1.0
-    wb: float = 20.0
-    wc: float = 100.0
-    success_bonus: float = 1000.0
-    step_bonus: float = 1.5
-
-
-@dataclass(frozen=True)
-class Outcome:
-    """The paper's reward terms and terminal tests for one state (pure: unit-testable)."""
-
-    r_a: float
-    r_b: float
-    r_c: float
-    reward: float
-    success: bool
-    failure: str | None
-
-
-def observed_h(joint_angles: np.ndarray, goal_angles: np.ndarray, joint_range: np.ndarray) -> float:
-    """h = 1 - 0.5 max_i |j_i - j_i^g| with each difference normalised by the joint's range."""
-    return 1.0 - 0.5 * float((np.abs(joint_angles - goal_angles) / joint_range).max())
-
-
-def evaluate_state(
-    h: float,
-    palm_rel: np.ndarray,
-    goal_palm_rel: np.ndarray,
-    object_pos: np.ndarray,
-    object_start: np.ndarray,
-    step: int,
-    max_steps: int = 200,
-    weights: RewardWeights = RewardWeights(),
-    object_tolerance: float = 0.01,
-    palm_tolerance: float = 0.1,
-    success_tolerances: tuple[float, float, float] = (0.01, 0.05, 0.01),
-) -> Outcome:
-    """Reward terms, success and failure for a state; ``step`` counts from 1."""
-    r_a = -abs(1.0 - h)
-    palm_error = palm_rel - goal_palm_rel
-    displacement = object_pos - object_start
-    r_b = -math.sqrt(float(palm_error.dot(palm_error)))  # np.linalg.norm costs 5x more here
-    r_c = -math.sqrt(float(displacement.dot(displacement)))
-    reward = weights.w + weights.wa * r_a + weights.wb * r_b + weights.wc * r_c
-    tol_c, tol_a, tol_b = success_tolerances
-    success = -r_c < tol_c and -r_a < tol_a and -r_b < tol_b
-    failure = None
-    if success:
-        reward += weights.success_bonus + weights.step_bonus * (max_steps - step)
-    elif -r_c > object_tolerance:
-        failure = "object_moved"
-    elif -r_b > palm_tolerance:
-        failure = "palm_deviation"
-    return Outcome(r_a, r_b, r_c, reward, success, failure)
 
 
 class FunctionalGraspEnv(gym.Env):
@@ -154,6 +97,7 @@ class FunctionalGraspEnv(gym.Env):
         max_translation_step: float = ACTION_STEPS[0],
         max_rotation_step: float = ACTION_STEPS[1],
         max_h_step: float = ACTION_STEPS[2],
+        torque_history: int = 0,
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
@@ -166,7 +110,7 @@ class FunctionalGraspEnv(gym.Env):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
         self.object_spec = load_object(object_name)
         self.label = label if label is not None else load_label(object_name)
-        self.force_feedback = bool(force_feedback)
+        self.force_feedback, self.torque_history = bool(force_feedback), int(torque_history)
         self.mass_scale, self.jitter, self.torque_noise_std = float(mass_scale), float(jitter), float(torque_noise_std)
         self.frame_skip, self.max_steps = int(frame_skip), int(max_steps)
         self.object_tolerance, self.palm_tolerance = float(object_tolerance), float(palm_tolerance)
@@ -196,7 +140,7 @@ class FunctionalGraspEnv(gym.Env):
         # Goal palm in the world with the object at its nominal pose (origin): Table I's last entry.
         self._goal_tail = np.concatenate([self.label.goal.base, self.label.goal_palm]).astype(np.float32)
 
-        layout = observation_layout(self.force_feedback)
+        layout = observation_layout(self.force_feedback, torque_history)  # checks torque_history
         n_obs = sum(n for _, n in layout)
         # Table I is written into one buffer by slices (cheaper than concatenating 8 parts).
         edges = np.cumsum([0] + [n for _, n in layout])
@@ -217,7 +161,8 @@ class FunctionalGraspEnv(gym.Env):
     def for_policy(cls, meta, **kwargs) -> "FunctionalGraspEnv":
         """The env a policy file was trained for: its object, observation and action step sizes
         (``meta`` is its PolicyMetadata); ``kwargs`` set everything else."""
-        return cls(meta.object_name, **{"force_feedback": meta.force_feedback, **action_steps_of(meta), **kwargs})
+        return cls(meta.object_name, **{"force_feedback": meta.force_feedback, "torque_history": torque_history_of(meta),
+                                        **action_steps_of(meta), **kwargs})
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -250,6 +195,10 @@ class FunctionalGraspEnv(gym.Env):
         self._prev_pose = self._base_q.copy()
         self._prev_h = self._observed_h()
         obs = self._observation()
+        if self.torque_history:  # no earlier steps: the history starts as copies of the first reading
+            at = self._slots
+            self._obs[at["torque_history"]] = np.tile(self._obs[at["joint_torques"]], self.torque_history)
+            obs = self._obs.copy()
         return obs, {"offset": offset.copy(), "h": self._prev_h}
 
     def step(self, action):
@@ -319,6 +268,9 @@ class FunctionalGraspEnv(gym.Env):
         h = self._observed_h()
         obs, at = self._obs, self._slots
         if self.force_feedback:
+            if self.torque_history:  # shift by one step: the torques observed last go in front
+                obs[at["torque_history"]] = np.roll(obs[at["torque_history"]], 24)
+                obs[at["torque_history"]][:24] = obs[at["joint_torques"]]
             obs[at["joint_torques"]] = self._hand_force
             if self.torque_noise_std > 0:
                 obs[at["joint_torques"]] += self.np_random.normal(0.0, self.torque_noise_std, 24)

@@ -125,6 +125,7 @@ class Ranker:
                 "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
                 # recorded only when not the first sizes, so that earlier runs' scores stay valid
                 **({} if tuple(e.action_steps().values()) == FIRST_ACTION_STEPS else e.action_steps()),
+                **({"torque_history": e.torque_history} if e.torque_history else {}),
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
                 "final_rank_episodes": ev.final_rank_episodes,
                 # the placements themselves: a change in how they are drawn (e.g. which offsets
@@ -222,7 +223,7 @@ class Ranker:
             raise CheckpointRejected(str(exc)) from None
         env = self.config.env
         try:
-            check_policy(meta, env.object, env.force_feedback, env.action_steps())
+            check_policy(meta, env.object, env.force_feedback, env.action_steps(), env.torque_history)
         except ValueError as exc:
             raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback})") from None
         return weights, meta

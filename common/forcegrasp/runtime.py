@@ -71,6 +71,7 @@ def make_env(config: Config, **overrides):
         jitter=e.jitter,
         torque_noise_std=e.torque_noise_std,
         max_steps=e.max_steps,
+        torque_history=e.torque_history,
         **e.action_steps(),
     )
     kwargs.update(overrides)
@@ -82,4 +83,5 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
     """What a policy trained under ``config`` looks like: the contract between learner and actors."""
     return task.policy_metadata(config.env.object, config.env.force_feedback, hidden, obs_norm=obs_norm,
                                 training_steps=training_steps, score=score, action_steps=config.env.action_steps(),
+                                torque_history=config.env.torque_history,
                                 extra={"run": config.run.name, **extra})

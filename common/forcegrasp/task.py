@@ -1,7 +1,7 @@
 """The task contract, without the simulator: what a FunctionalGrasp policy sees and does.
 
 Every size in ForceGrasp comes from here: the observation layout (Table I of the paper; 77 numbers,
-53 without force feedback), the action layout (7), the privileged simulator state an asymmetric
+53 without force feedback; 77 + 24 k with the optional torque history of k steps), the action layout (7), the privileged simulator state an asymmetric
 critic may see in training (14, never part of the observation) and what an action of +1 means in
 env units. `policy_metadata` builds the metadata of a policy for a task and `check_policy` tells
 whether a policy file fits an env's settings. Importing this module loads neither mujoco nor
@@ -53,12 +53,30 @@ FIRST_ACTION_STEPS = (0.004, 0.02, 0.025)
 ACTION_STEP_KEYS = ("max_translation_step", "max_rotation_step", "max_h_step")
 
 
-def observation_layout(force_feedback: bool = True) -> tuple[tuple[str, int], ...]:
-    return OBS_LAYOUT if force_feedback else OBS_LAYOUT[1:]
+def observation_layout(force_feedback: bool = True, torque_history: int = 0) -> tuple[tuple[str, int], ...]:
+    """Table I; with ``torque_history`` k > 0 the joint torques of the k previous steps (newest
+    first, 24 each) follow the current ones: a lever outside the paper's observation."""
+    check_torque_history(force_feedback, torque_history)
+    if not force_feedback:
+        return OBS_LAYOUT[1:]
+    history = (("torque_history", 24 * int(torque_history)),) if torque_history else ()
+    return (OBS_LAYOUT[0], *history, *OBS_LAYOUT[1:])
 
 
-def obs_dim(force_feedback: bool = True) -> int:
-    return sum(n for _, n in observation_layout(force_feedback))
+def obs_dim(force_feedback: bool = True, torque_history: int = 0) -> int:
+    return sum(n for _, n in observation_layout(force_feedback, torque_history))
+
+
+def check_torque_history(force_feedback: bool, torque_history: int) -> None:
+    if int(torque_history) != torque_history or torque_history < 0:
+        raise ValueError(f"torque_history must be a whole number >= 0, got {torque_history!r}")
+    if torque_history and not force_feedback:
+        raise ValueError("torque_history needs force_feedback: without it no torques are observed")
+
+
+def torque_history_of(meta: PolicyMetadata) -> int:
+    """How many previous steps' torques a policy observes (0 for Table I itself)."""
+    return dict(meta.obs_layout).get("torque_history", 0) // 24
 
 
 def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
@@ -81,12 +99,12 @@ def action_steps_of(meta: PolicyMetadata) -> dict[str, float]:
 
 def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm: bool = False,
                     training_steps: int = 0, score: float | None = None, action_steps: dict | None = None,
-                    extra: dict | None = None) -> PolicyMetadata:
+                    torque_history: int = 0, extra: dict | None = None) -> PolicyMetadata:
     """The metadata of a policy for this task: layouts, action scaling (``action_steps``: the env's
     step-size keywords, default `ACTION_STEPS`), architecture."""
     scale = action_scale(**(action_steps or {}))
     return PolicyMetadata(
-        obs_layout=list(observation_layout(force_feedback)),
+        obs_layout=list(observation_layout(force_feedback, torque_history)),
         action_layout=list(ACTION_LAYOUT),
         hidden=tuple(hidden),
         object_name=object_name,
@@ -101,13 +119,15 @@ def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm:
 
 
 def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_feedback: bool | None = None,
-                 action_steps: dict | None = None) -> None:
+                 action_steps: dict | None = None, torque_history: int = 0) -> None:
     """Raise ValueError saying why a policy does not fit an env with these settings (``action_steps``:
-    the env's step-size keywords, default `ACTION_STEPS`)."""
+    the env's step-size keywords, default `ACTION_STEPS`; ``torque_history``: the env's)."""
     ff = meta.force_feedback if force_feedback is None else bool(force_feedback)
-    if meta.obs_layout != list(observation_layout(ff)):
+    layout = observation_layout(ff, torque_history)
+    if meta.obs_layout != list(layout):
+        setting = f"force_feedback={ff}" + (f", torque_history={torque_history}" if torque_history else "")
         raise ValueError(f"policy observes {meta.obs_dim} numbers ({[n for n, _ in meta.obs_layout]}); "
-                         f"the env with force_feedback={ff} gives {obs_dim(ff)} ({[n for n, _ in observation_layout(ff)]})")
+                         f"the env with {setting} gives {obs_dim(ff, torque_history)} ({[n for n, _ in layout]})")
     if meta.action_layout != list(ACTION_LAYOUT):
         raise ValueError(f"policy acts with {meta.act_dim} numbers {meta.action_layout}; the env takes {ACTION_LAYOUT}")
     if object_name is not None and meta.object_name and meta.object_name != object_name:
