@@ -65,7 +65,7 @@ def lever_name(levers: dict, object_name: str = "") -> str:
     left out and one set to its SACConfig default are the same setting: "− key"."""
     levers, default = {**OFF, **levers}, default_for(object_name)
     first_steps = tuple(levers[k] for k in ACTION_STEP_KEYS) == FIRST_ACTION_STEPS
-    diff = [f"− {k}" if v == OFF.get(k, 0) else f"{k} = {v}"
+    diff = [f"− {k}" if v == OFF.get(k, 0) else f"{k} = {v}" + (" (not Table I)" if k == "torque_history" else "")
             for k, v in sorted(levers.items()) if default.get(k, 0) != v and not (first_steps and k in ACTION_STEP_KEYS)]
     if first_steps and FIRST_ACTION_STEPS != tuple(default[k] for k in ACTION_STEP_KEYS):
         diff = sorted(diff + ["first action steps"])

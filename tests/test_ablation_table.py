@@ -32,6 +32,9 @@ def test_lever_names_are_differences_from_the_default():
     more_envs["config"]["actor"]["envs_per_actor"] = 16
     more_envs["config"]["env"] = {**STEPS, "max_translation_step": 0.008}
     assert name(more_envs) == "fast, envs_per_actor = 16, max_translation_step = 0.008, updates_per_step = 0.1"
+    history = record(0, {}, [])
+    history["config"]["env"] = {**STEPS, "torque_history": 3}
+    assert name(history) == "fast, torque_history = 3 (not Table I)"  # reported apart: it changes Table I
     # records from before the step keys, and runs at the first sizes, say so in one term
     earlier = record(0, {"n_step": 3}, [])
     del earlier["config"]["env"]
