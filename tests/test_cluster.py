@@ -139,15 +139,20 @@ def test_two_actors_stream_without_gaps(cluster):
     )
     learner = s["learner"]
     assert learner["gaps"] == 0 and learner["rejected"] == 0
-    # The rate limiter holds 1 update per step: whatever the actors buffered before the learner
-    # came up is worked off, then the updates owed stay within max_lead (+ what two actors can
-    # have in flight), with the actors pausing.
-    limit = 200 + 64 + 2 * 4 * 16
-    cluster.wait_for("the learner's lead worked off", lambda s: s["learner"]["ingested"] - s["learner"]["updates"] <= limit)
+    # The rate limiter holds 1 update per step: the updates owed (update_debt) for whatever the
+    # actors buffered before the learner came up are worked off (past MAX_UPDATE_DEBT they are
+    # forgone, counted), then the debt stays within max_lead (+ what two actors can have in
+    # flight), with the actors pausing; the counters agree: the gap between transitions and
+    # updates grows no more than the debt may.
+    limit = 64 + 2 * 4 * 16
+    cluster.wait_for("the learner's lead worked off", lambda s: s["learner"]["update_debt"] <= limit)
     mark = len(cluster.history["learner"])
-    s = cluster.wait_for("more training", lambda s: s["learner"]["updates"] > 400 + cluster.history["learner"][mark - 1]["updates"])
+    start = cluster.history["learner"][mark - 1]
+    s = cluster.wait_for("more training", lambda s: s["learner"]["updates"] > 400 + start["updates"])
     for values in cluster.history["learner"][mark:]:
-        assert values["ingested"] - values["updates"] <= limit, values
+        assert values["update_debt"] <= limit, values
+        assert values["updates_forgone"] == start["updates_forgone"], values
+        assert (values["ingested"] - values["updates"]) - (start["ingested"] - start["updates"]) <= limit, values
     assert any(a["paused_s"] > 0 for name, a in s.items() if name != "learner")
     for a in ("actor-a", "actor-b"):
         track = learner["actors"][a]

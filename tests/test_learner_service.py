@@ -13,9 +13,9 @@ def _config(tmp_path, *extra):
                                   "learner.sac.buffer_size=1000", "learner.recipe=paper", *extra])
 
 
-def _feed(service, n=32):
-    rng = np.random.default_rng(0)
-    batch = TransitionBatch("a", 0, 0, rng.normal(size=(n, 77)), rng.uniform(-1, 1, (n, 7)), rng.normal(size=n),
+def _feed(service, n=32, seq=0):
+    rng = np.random.default_rng(seq)
+    batch = TransitionBatch("a", seq, 0, rng.normal(size=(n, 77)), rng.uniform(-1, 1, (n, 7)), rng.normal(size=n),
                             rng.normal(size=(n, 77)), np.zeros(n, bool), np.zeros(n, bool))
     assert service.ingest(Keys("r").transitions("a"), encode_transitions(batch)) == n
 
@@ -54,3 +54,18 @@ def test_recipes_are_presets_under_the_overrides(tmp_path):
 
     with pytest.raises(ConfigError):
         _config(tmp_path, "learner.recipe=magic")
+
+
+def test_update_debt_past_its_cap_is_forgone_and_counted(tmp_path, monkeypatch):
+    import forcegrasp.learning
+
+    monkeypatch.setattr(forcegrasp.learning, "MAX_UPDATE_DEBT", 40)
+    service = LearnerService(_config(tmp_path, "learner.sac.learning_starts=0", "learner.sac.batch_size=8"))
+    _feed(service)
+    assert service.updates_due == 32 and service.updates_forgone == 0
+    _feed(service, seq=1)  # 64 owed, 40 kept
+    assert service.updates_due == 40 and service.updates_forgone == 24
+    service.train(100)
+    stats = service.stats(1.0, 0, 0)
+    assert (stats["updates"], stats["update_debt"], stats["updates_forgone"]) == (40, 0.0, 24)
+    assert stats["updates"] + stats["update_debt"] + stats["updates_forgone"] == stats["ingested"]

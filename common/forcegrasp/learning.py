@@ -27,7 +27,9 @@ from forcegrasp.recipes import sac_config
 from forcegrasp.sac import SAC
 
 log = logging.getLogger("forcegrasp.learner")
-MAX_UPDATE_DEBT = 10_000  # a learner slower than its actors trains below the target ratio
+#: Updates a learner may owe. Past it the oldest debt is forgone (counted in ``updates_forgone``):
+#: a backlog the actors filled while no learner listened is trained on once, not for hours.
+MAX_UPDATE_DEBT = 10_000
 
 
 class Learner:
@@ -46,6 +48,7 @@ class Learner:
         self.ingested = 0
         self.policy_version = 0
         self.updates_due = 0.0
+        self.updates_forgone = 0.0  # debt dropped at MAX_UPDATE_DEBT (each one an update never made)
         self.last_checkpoint = 0
         self.last_policy = 0
         self.on_episode = None  # called (return, success, step) per finished episode, e.g. for TensorBoard
@@ -99,7 +102,15 @@ class Learner:
                 if self.on_episode is not None:
                     self.on_episode(float(r), bool(s), self.ingested)
         if len(self.buffer) >= self.sac_cfg.learning_starts:
-            self.updates_due = min(self.updates_due + batch.n * self.sac_cfg.updates_per_step, MAX_UPDATE_DEBT)
+            owed = self.updates_due + batch.n * self.sac_cfg.updates_per_step
+            if owed > MAX_UPDATE_DEBT:
+                if not self.updates_forgone:
+                    log.warning("learner owes more than %d updates (a backlog from before it listened, or "
+                                "learner.max_lead = 0 with fast actors): the excess is forgone, counted in "
+                                "updates_forgone", MAX_UPDATE_DEBT)
+                self.updates_forgone += owed - MAX_UPDATE_DEBT
+                owed = MAX_UPDATE_DEBT
+            self.updates_due = owed
         return batch.n
 
     def train(self, max_updates: int) -> dict:
@@ -138,6 +149,8 @@ class Learner:
             "ingested": self.ingested,
             "updates": self.sac.num_updates,
             "updates_per_s": (self.sac.num_updates - updates0) / max(elapsed, 1e-9),
+            "update_debt": float(self.updates_due),  # owed for data ingested; the rate limiter bounds it
+            "updates_forgone": int(self.updates_forgone),
             "ingest_per_s": (self.ingested - ingested0) / max(elapsed, 1e-9),
             "replay_size": len(self.buffer),
             "policy_version": self.policy_version,
