@@ -580,7 +580,10 @@ def test_http_bounds_bodies_rates_and_connections(tmp_path, monkeypatch):
         assert request(port, "GET", "/top")[0] == 200  # tokens came back
         idle = [socket.create_connection(("127.0.0.1", port)) for _ in range(4)]  # hold every slot
         try:
-            time.sleep(0.3)
+            deadline = time.monotonic() + 10  # a busy machine may accept them late
+            while server.connections < 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert server.connections == 4, f"{server.connections} of the 4 idle connections hold a slot"
             with pytest.raises((ConnectionError, http.client.HTTPException, OSError)):
                 request(port, "GET", "/top")
         finally:

@@ -254,6 +254,7 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
         self._thread: threading.Thread | None = None
         self._buckets: dict[str, tuple[float, float]] = {}  # client address -> (tokens, time)
         self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self.connections = 0  # connections holding a slot now (each has a handler thread)
 
     def allow(self, client: str) -> bool:
         """Token bucket per client address (`RATE_PER_S`, `BURST`)."""
@@ -272,9 +273,11 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
             self.count(503)
             self.shutdown_request(request)
             return
+        self._held(+1)
         try:
             super().process_request(request, client_address)
         except Exception:
+            self._held(-1)
             self._slots.release()
             raise
 
@@ -282,7 +285,12 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
         try:
             super().process_request_thread(request, client_address)
         finally:
+            self._held(-1)
             self._slots.release()
+
+    def _held(self, change: int) -> None:
+        with self._lock:
+            self.connections += change
 
     @property
     def port(self) -> int:
