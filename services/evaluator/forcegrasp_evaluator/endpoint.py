@@ -253,7 +253,7 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self._buckets: dict[str, tuple[float, float]] = {}  # client address -> (tokens, time)
-        self._slots = threading.BoundedSemaphore(MAX_CONNECTIONS)
+        self.max_connections = MAX_CONNECTIONS
         self.connections = 0  # connections holding a slot now (each has a handler thread)
 
     def allow(self, client: str) -> bool:
@@ -269,28 +269,28 @@ class EvaluatorHTTPServer(ThreadingHTTPServer):
             return ok
 
     def process_request(self, request, client_address):
-        if not self._slots.acquire(blocking=False):  # every slot busy: close, do not queue a thread
+        with self._lock:
+            free = self.connections < self.max_connections
+            self.connections += free
+        if not free:  # every slot busy: close, do not queue a thread
             self.count(503)
             self.shutdown_request(request)
             return
-        self._held(+1)
         try:
             super().process_request(request, client_address)
         except Exception:
-            self._held(-1)
-            self._slots.release()
+            self._release()
             raise
 
     def process_request_thread(self, request, client_address):
         try:
             super().process_request_thread(request, client_address)
         finally:
-            self._held(-1)
-            self._slots.release()
+            self._release()
 
-    def _held(self, change: int) -> None:
+    def _release(self) -> None:
         with self._lock:
-            self.connections += change
+            self.connections -= 1
 
     @property
     def port(self) -> int:
