@@ -1,6 +1,9 @@
 """The recipe's ablation table from `forcegrasp experiment` records: each lever setting, per object
 and force-feedback arm, with held-out success of the evaluator's pick at 10 / 20 / 40 / 60
-minutes, mean and range over seeds, and how many seeds reached each mark.
+minutes, mean and range over seeds, and how many seeds reached each mark; then the axis that does
+not depend on the machine: the environment steps the first pick at or above 90 % was trained on,
+and each run's environment steps per second (the same two cores ran 110-430 steps/s in different
+sessions, so minutes compare only within one session).
 
 Levers are read from each record's configuration (recipe preset + [learner.sac] overrides + the
 actor and env keys of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they differ from the default recipe, so a record says
@@ -80,6 +83,32 @@ def success_at(record: dict, minute: float) -> float | None:
     return None
 
 
+def steps_to(record: dict, rate: float = 0.9) -> int | None:
+    """Env steps the evaluator's pick had trained on at the first mark where it scored >= rate."""
+    for mark in sorted(record.get("marks", []), key=lambda m: m["minute"]):
+        best = mark.get("test", {}).get("best")
+        if best is not None and best["success_rate"] >= rate and "best" in mark.get("steps", {}):
+            return int(mark["steps"]["best"])
+    return None
+
+
+def steps_per_s(record: dict) -> float | None:
+    """The run's environment steps per wall-clock second (the machine's speed as the run saw it)."""
+    last = max(record.get("marks", []), key=lambda m: m["minute"], default=None)
+    if last is None or "latest" not in last.get("steps", {}) or not last.get("elapsed_s"):
+        return None
+    return last["steps"]["latest"] / last["elapsed_s"]
+
+
+def steps_cell(records: list[dict]) -> str:
+    reached = [s for r in records if (s := steps_to(r)) is not None]
+    if not reached:
+        return f"– (0 of {len(records)})"
+    k = [s / 1000 for s in reached]
+    spread = f" [{min(k):.0f}–{max(k):.0f}]" if len(k) > 1 else ""
+    return f"{statistics.median(k):.0f} k{spread} ({len(k)} of {len(records)})"
+
+
 def cell(values: list[float]) -> str:
     if not values:
         return "–"
@@ -99,13 +128,16 @@ def table(paths: list[Path]) -> str:
         key = (era, record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
         groups[key].append(record)
     lines = ["| labels | object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
-             + " | run lengths |", "|---|---|---|---|---|" + "---:|" * len(MARKS) + "---|"]
+             + " | to 90 %: pick's env steps, median [range] | run lengths | env steps/s |",
+             "|---|---|---|---|---|" + "---:|" * len(MARKS) + "---|---|---|"]
     for (era, obj, ff, name), records in sorted(groups.items()):
-        seeds = ", ".join(str(r["seed"]) for r in sorted(records, key=lambda r: r["seed"]))
+        records = sorted(records, key=lambda r: r["seed"])  # seeds, lengths and speeds in one order
+        seeds = ", ".join(str(r["seed"]) for r in records)
         cells = [cell([v for r in records if (v := success_at(r, m)) is not None]) for m in MARKS]
         lengths = ", ".join(f"{r['marks'][-1]['minute']:.0f}" for r in records) + " min"
+        speeds = ", ".join("?" if (v := steps_per_s(r)) is None else f"{v:.0f}" for r in records)
         lines.append(f"| {era} | {obj} | {'yes' if ff else 'no'} | {name} | {seeds} | " + " | ".join(cells)
-                     + f" | {lengths} |")
+                     + f" | {steps_cell(records)} | {lengths} | {speeds} |")
     return "\n".join(lines)
 
 

@@ -1,5 +1,6 @@
-"""bench/ablation_table.py: levers are named from each record's own configuration, and a mark a
-run never reached stays empty (never filled from another mark)."""
+"""bench/ablation_table.py: levers are named from each record's own configuration, a mark a run
+never reached stays empty (never filled from another mark), and steps to 90 % come from the pick
+that first reached it."""
 
 import importlib.util
 import json
@@ -16,7 +17,8 @@ def record(seed, sac, marks, recipe="fast", demos=0):
     return {"seed": seed, "object": "camera", "force_feedback": True,
             "config": {"learner": {"recipe": recipe, "sac": sac}, "actor": {"demo_episodes": demos},
                        "env": dict(STEPS)},
-            "marks": [{"minute": m, "test": {"best": {"episodes": 50, "success_rate": s}}} for m, s in marks]}
+            "marks": [{"minute": m, "elapsed_s": 60 * m, "steps": {"latest": 12_000 * m, "best": 10_000 * m},
+                       "test": {"best": {"episodes": 50, "success_rate": s}}} for m, s in marks]}
 
 
 def test_lever_names_are_differences_from_the_default():
@@ -57,3 +59,17 @@ def test_table_pools_seeds_and_leaves_unreached_marks_empty(tmp_path):
     assert cells[6] == "95 % [90–100] (n=2)"
     assert cells[7] == "100 % (n=1)"
     assert cells[8] == "–"
+    # seed 0 first reached 90 % at minute 20 (pick of step 200 k), seed 1 at minute 20 too (0.9)
+    assert cells[9] == "200 k [200–200] (2 of 2)"
+    assert cells[10] == "20, 40 min" and cells[11] == "200, 200"  # 12 k steps per 60 s
+
+
+def test_steps_to_90_counts_the_runs_that_never_got_there(tmp_path):
+    paths = [tmp_path / "n-a-s0.json", tmp_path / "n-a-s1.json"]
+    paths[0].write_text(json.dumps(record(0, {}, [(10.0, 0.95), (20.0, 0.5)])))  # reached, then fell
+    paths[1].write_text(json.dumps(record(1, {}, [(10.0, 0.2), (20.0, 0.89)])))  # never reached
+    cells = [c.strip() for c in ablation_table.table(paths).splitlines()[2].strip("|").split("|")]
+    assert cells[9] == "100 k (1 of 2)"
+    paths[0].write_text(json.dumps(record(0, {}, [(10.0, 0.1)])))
+    cells = [c.strip() for c in ablation_table.table(paths).splitlines()[2].strip("|").split("|")]
+    assert cells[9] == "– (0 of 2)"
