@@ -1,13 +1,25 @@
 """`forcegrasp experiment`: a short real cluster run leaves marks, tests them, and resumes."""
 
 import json
+import threading
 
+from forcegrasp.cli import experiment
 from forcegrasp.config import load_config
 from forcegrasp.cli.experiment import RECORD, online_at, plot_records, run_experiment
 from forcegrasp.transport import free_tcp_port
 
 
-def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
+def _watch_clock(path, stop, seen):
+    """What a reader of the record on disk saw of the clock while the run went on."""
+    while not stop.wait(0.5):
+        try:
+            seen.append(json.loads(path.read_text())["elapsed_s"])
+        except (OSError, ValueError, KeyError):
+            pass
+
+
+def test_experiment_records_marks_tests_them_and_resumes(tmp_path, monkeypatch):
+    monkeypatch.setattr(experiment, "CLOCK_SAVE_S", 3.0)
     port = free_tcp_port()
     config = load_config(overrides=[
         "run.name=exp", f"run.output_dir={tmp_path}", "env.object=camera", "actor.num_actors=1",
@@ -17,10 +29,16 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
         "learner.sac.privileged_critic=true", "evaluator.eval_every=300", "evaluator.eval_episodes=2",
         "evaluator.final_rank_episodes=2", "evaluator.http_port=0", "learner.checkpoint_every=400",
     ])
-    lines = []
-    record = run_experiment(config, minutes=0.75, mark_every=0.25, episodes=3, test_seed=0, label="tiny",
-                            workers=2, log=lines.append)
+    lines, seen, stop = [], [], threading.Event()
     run_dir = tmp_path / "exp"
+    watcher = threading.Thread(target=_watch_clock, args=(run_dir / RECORD, stop, seen), daemon=True)
+    watcher.start()
+    try:
+        record = run_experiment(config, minutes=0.75, mark_every=0.25, episodes=3, test_seed=0, label="tiny",
+                                workers=2, log=lines.append)
+    finally:
+        stop.set()
+        watcher.join()
     assert [m["minute"] for m in record["marks"]] == [0.25, 0.5, 0.75]
     final = record["marks"][-1]
     assert {"latest", "best"} <= set(final["files"]) and final["steps"]["latest"] > 0
@@ -33,6 +51,12 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
     assert 0.0 <= online["success_rate"] <= 1.0 and 0 < online["step"] <= final["steps"]["latest"]
     on_disk = json.loads((run_dir / RECORD).read_text())
     assert on_disk["elapsed_s"] >= 45 and on_disk["marks"] == record["marks"]
+    # The clock reached the disk between marks too (a run killed outright loses at most
+    # CLOCK_SAVE_S of it), and only ever forwards.
+    between = {t for t in seen if all(abs(t - m["elapsed_s"]) > 0.5 for m in record["marks"]) and 0 < t < 45}
+    assert len(between) >= 5, seen
+    assert seen == sorted(seen)
+    assert "resumed_at_s" not in record
     # Same command, longer budget: training resumes where it stopped and the clock counts on.
     steps_before = final["steps"]["latest"]
     again = run_experiment(config, minutes=1.0, mark_every=0.25, episodes=3, test_seed=0, label="tiny",
@@ -40,6 +64,8 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path):
     assert [m["minute"] for m in again["marks"]] == [0.25, 0.5, 0.75, 1.0]
     assert again["marks"][:3] == record["marks"]  # kept, not re-tested
     assert again["marks"][-1]["steps"]["latest"] > steps_before
+    assert again["resumed_at_s"] == [on_disk["elapsed_s"]]
+    assert any(line.startswith("experiment tiny: resuming at") for line in lines)
     assert plot_records([again], tmp_path / "x.png").stat().st_size > 10_000
 
 

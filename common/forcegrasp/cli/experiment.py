@@ -15,7 +15,10 @@ their steps and scores; ``forcegrasp experiment --plot OUT.png RUN...`` overlays
 
 Resumable: the same command continues an interrupted experiment: training resumes from the
 learner's checkpoint, wall-clock counts on from where it stopped, marks already taken are kept
-and only untested files are evaluated.
+and only untested files are evaluated. The clock is saved every `CLOCK_SAVE_S` seconds, not only
+at marks, so a run killed outright (no chance to save) resumes at most that much early; training
+done after the learner's last checkpoint is lost and its minutes stay counted, so a resumed run is
+never given time. Each resume is listed in the record (``"resumed_at_s"``).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from forcegrasp.report import FRESH_WORKERS
 from forcegrasp.rundir import RunDir
 
 RECORD = RunDir(".").experiment.name
+#: Seconds between saves of the wall-clock spent (a killed run resumes at most this early).
+CLOCK_SAVE_S = 10.0
 
 
 # ---------------------------------------------------------------------------------- the record
@@ -198,6 +203,10 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
     done_s = float(record["elapsed_s"])
     remaining = minutes * 60.0 - done_s
     if remaining > 1.0:
+        if done_s > 0.0:
+            record.setdefault("resumed_at_s", []).append(done_s)
+            save_record(run_dir, record)
+            log(f"experiment {label}: resuming at {done_s / 60:.1f} min of wall-clock from the learner's last checkpoint")
         log(f"experiment {label}: {remaining / 60:.1f} of {minutes} min to train; marks every {mark_every} min")
         t0 = time.monotonic()
         stop = threading.Event()
@@ -207,14 +216,17 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
             return done_s + time.monotonic() - t0
 
         def marker() -> None:
+            """Take each mark on time; between marks, save the clock every CLOCK_SAVE_S seconds."""
             k = 1
             while not stop.is_set():
                 minute = round(k * mark_every, 3)
                 if minute >= minutes:
-                    return  # the final mark is taken after the cluster stops
-                wait = minute * 60.0 - elapsed()
-                if minute not in taken and wait > 0 and stop.wait(wait):
-                    return
+                    minute = float("inf")  # the final mark is taken after the cluster stops
+                while minute not in taken and (wait := minute * 60.0 - elapsed()) > 0:
+                    if stop.wait(min(wait, CLOCK_SAVE_S)):
+                        return
+                    record["elapsed_s"] = round(elapsed(), 1)
+                    save_record(run_dir, record)
                 if minute not in taken:
                     take_mark(run_dir, record, minute, elapsed())
                     record["elapsed_s"] = round(elapsed(), 1)
