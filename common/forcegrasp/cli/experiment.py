@@ -215,6 +215,10 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         def elapsed() -> float:
             return done_s + time.monotonic() - t0
 
+        def save_clock() -> None:
+            record["elapsed_s"] = round(elapsed(), 1)
+            save_record(run_dir, record)
+
         def marker() -> None:
             """Take each mark on time; between marks, save the clock every CLOCK_SAVE_S seconds."""
             k = 1
@@ -225,12 +229,10 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
                 while minute not in taken and (wait := minute * 60.0 - elapsed()) > 0:
                     if stop.wait(min(wait, CLOCK_SAVE_S)):
                         return
-                    record["elapsed_s"] = round(elapsed(), 1)
-                    save_record(run_dir, record)
+                    save_clock()
                 if minute not in taken:
-                    take_mark(run_dir, record, minute, elapsed())
                     record["elapsed_s"] = round(elapsed(), 1)
-                    save_record(run_dir, record)
+                    take_mark(run_dir, record, minute, record["elapsed_s"])  # saves the record, clock included
                 k += 1
 
         thread = threading.Thread(target=marker, daemon=True, name="marks")
@@ -240,8 +242,7 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         finally:
             stop.set()
             thread.join()
-            record["elapsed_s"] = round(elapsed(), 1)
-            save_record(run_dir, record)
+            save_clock()
         if record["elapsed_s"] >= minutes * 60.0 - 1.0:
             take_mark(run_dir, record, float(minutes), record["elapsed_s"])
     test_marks(run_dir, record, workers or max(1, os.cpu_count() or 1), log)
