@@ -291,7 +291,7 @@ def plot_records(records: list[dict], out: Path) -> Path:
     objects = sorted({r["object"] for r in records})
     fig.suptitle(f"{', '.join(objects)}: evaluator's pick (solid) and latest snapshot (dotted) on "
                  f"{records[0]['episodes']} held-out placements")
-    axes[0].legend(fontsize=8, loc="upper left")
+    axes[0].legend(fontsize=8, loc="lower right")  # curves rise to the top left
     fig.tight_layout()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
