@@ -5,9 +5,11 @@ not depend on the machine: the environment steps the first pick at or above 90 %
 and each run's environment steps per second (the same two cores ran 110-430 steps/s in different
 sessions, so minutes compare only within one session).
 
-Levers are read from each record's configuration (recipe preset + [learner.sac] overrides + the
-actor and env keys of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they differ from the default recipe, so a record says
-itself what it measured. A mark a run never reached is "–", never a guess; the table's last
+Levers are read from each record's configuration (its `effective` SAC settings and demonstrations
+where the record has them, else recipe preset + [learner.sac] overrides; + the actor and env keys
+of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they
+differ from the default recipe on that object (`forcegrasp.recipes.OBJECT_RECIPES`), so a record
+says itself what it measured. A mark a run never reached is "–", never a guess; the table's last
 column says how long each group's runs were. The label era comes from the file's prefix (the
 grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
 (issue 14; the mug's over-the-top label), `h-` the mug through the handle. The action step sizes
@@ -27,7 +29,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from forcegrasp.config import Config
-from forcegrasp.recipes import RECIPES, demo_episodes
+from forcegrasp.recipes import RECIPES, demo_episodes, recipe_settings
 from forcegrasp.sac import SACConfig
 from forcegrasp.task import ACTION_STEP_KEYS, FIRST_ACTION_STEPS
 
@@ -43,21 +45,30 @@ DEFAULT = {**OFF, **RECIPES["fast"]}
 
 
 def default_for(object_name: str) -> dict:
-    """The default recipe's settings on one object (demonstrations are per object)."""
-    return {**DEFAULT, "demo_episodes": demo_episodes(object_name, -1)}
+    """The default recipe's settings on one object (demonstrations and `OBJECT_RECIPES` are per object)."""
+    return {**DEFAULT, **recipe_settings("fast", object_name), "demo_episodes": demo_episodes(object_name, -1)}
+
+
+def _same(a, b) -> bool:
+    """Equal once JSON's lists are read as the tuples SACConfig holds."""
+    return (tuple(a) if isinstance(a, list) else a) == (tuple(b) if isinstance(b, list) else b)
 
 
 def settings(record: dict) -> dict:
     """The SAC levers and the `RUN_LEVERS` a record trained with (those away from their defaults)."""
     config = record.get("config") or {}
     learner = config.get("learner")
-    if learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
+    effective = record.get("effective")
+    if effective is not None:  # records since per-object recipes: what the run trained with
+        sac = {k: v for k, v in effective["sac"].items() if k in OFF and k != "seed" and not _same(v, OFF[k])}
+    elif learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
         sac = {"updates_per_step": 0.25}
-    else:
+    else:  # earlier records: their recipe had no per-object settings yet
         sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
     missing = {**OFF, **dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS))}  # records from before the step keys
     run = {key: (config.get(section) or {}).get(key, missing[key]) for section, keys in RUN_LEVERS.items() for key in keys}
-    run["demo_episodes"] = demo_episodes(record.get("object", ""), run["demo_episodes"])
+    run["demo_episodes"] = (effective["demo_episodes"] if effective is not None
+                            else demo_episodes(record.get("object", ""), run["demo_episodes"]))
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 

@@ -38,13 +38,14 @@ def synthetic_data(n: int, obs_dim: int, act_dim: int, priv_dim: int, seed: int 
     }
 
 
-def make_ours(args, data):
+def make_ours(args, data, layer_norm=False):
     from forcegrasp.replay import ReplayBuffer
     from forcegrasp.sac import SAC, SACConfig
 
     sac = SAC(args.obs, args.act, SACConfig(hidden=tuple(args.hidden), batch_size=args.batch, device=args.device,
                                             num_threads=args.threads, parallel_branches=False if args.serial else None,
-                                            privileged_critic=args.priv > 0), priv_dim=args.priv)
+                                            privileged_critic=args.priv > 0, critic_layer_norm=layer_norm),
+              priv_dim=args.priv)
     buffer = ReplayBuffer(args.obs, args.act, capacity=len(data["reward"]), priv_dim=args.priv)
     priv = {"privileged": data["privileged"], "next_privileged": data["next_privileged"]} if args.priv else {}
     buffer.add_batch(data["obs"], data["action"], data["reward"], data["next_obs"], data["terminated"], **priv)
@@ -126,6 +127,8 @@ def main(argv=None) -> int:
                         help="torch threads for stable-baselines3 (default: all usable cores, torch's own default)")
     parser.add_argument("--serial", action="store_true", help="run ForceGrasp's two gradient branches one after the other")
     parser.add_argument("--no-sb3", action="store_true", help="time ForceGrasp's SAC only")
+    parser.add_argument("--layer-norm", action="store_true",
+                        help="also time ForceGrasp's SAC with critic LayerNorm (the mug's default, recipes.OBJECT_RECIPES)")
     args = parser.parse_args(argv)
 
     from forcegrasp.policy import configure_threads, select_device, usable_cores
@@ -149,6 +152,8 @@ def main(argv=None) -> int:
 
     data = synthetic_data(args.buffer, args.obs, args.act, args.priv)
     learners = {"forcegrasp": make_ours(args, data)}
+    if args.layer_norm:
+        learners["forcegrasp, critic LayerNorm"] = make_ours(args, data, layer_norm=True)
     if not args.no_sb3:
         import stable_baselines3
         sb3 = f"stable-baselines3 {stable_baselines3.__version__}"
@@ -173,13 +178,11 @@ def main(argv=None) -> int:
     for name, ts in times.items():
         med = statistics.median(ts)
         print(f"| {name} | {med * 1e3:.2f} | {min(ts) * 1e3:.2f} | {1 / med:.0f} |")
-    ours = times["forcegrasp"]
-    for name, other in times.items():
-        if name == "forcegrasp":
-            continue
-        ratios = [s / o for o, s in zip(ours, other)]  # per interleaved pair: same machine state
-        print(f"\nspeed-up over {name}: {statistics.median(other) / statistics.median(ours):.2f}x "
-              f"(ratio of medians); per-repetition ratios {min(ratios):.2f}x to {max(ratios):.2f}x")
+    for mine, ours in ((n, t) for n, t in times.items() if n.startswith("forcegrasp")):
+        for name, other in ((n, t) for n, t in times.items() if not n.startswith("forcegrasp")):
+            ratios = [s / o for o, s in zip(ours, other)]  # per interleaved pair: same machine state
+            print(f"\n{mine}: speed-up over {name}: {statistics.median(other) / statistics.median(ours):.2f}x "
+                  f"(ratio of medians); per-repetition ratios {min(ratios):.2f}x to {max(ratios):.2f}x")
     return 0
 
 

@@ -27,9 +27,11 @@ def test_lever_names_are_differences_from_the_default():
     assert name(record(0, {"n_step": 3}, [])) == "fast, n_step = 3"
     assert name(record(0, {}, [], recipe="paper")) == "fast, − privileged_critic, − updates_per_step"
     assert name(record(0, {}, [], demos=4)) == "fast, demo_episodes = 4"
-    mug = lambda demos: {**record(0, {}, [], demos=demos), "object": "mug"}  # noqa: E731
+    mug = lambda demos, sac={"critic_layer_norm": True}: {**record(0, sac, [], demos=demos), "object": "mug"}  # noqa: E731
     assert name(mug(4)) == name(mug(-1)) == "fast (the default)"  # the mug's default has demonstrations
     assert name(mug(0)) == "fast, − demo_episodes"
+    # ... and critic LayerNorm (OBJECT_RECIPES): a mug record from before it, trained without, says so
+    assert name(mug(-1, {})) == "fast, − critic_layer_norm"
     more_envs = record(0, {"updates_per_step": 0.1}, [])
     more_envs["config"]["actor"]["envs_per_actor"] = 16
     more_envs["config"]["env"] = {**STEPS, "max_translation_step": 0.008}
@@ -73,3 +75,25 @@ def test_steps_to_90_counts_the_runs_that_never_got_there(tmp_path):
     paths[0].write_text(json.dumps(record(0, {}, [(10.0, 0.1)])))
     cells = [c.strip() for c in ablation_table.table(paths).splitlines()[2].strip("|").split("|")]
     assert cells[9] == "– (0 of 2)"
+
+
+def test_records_with_effective_settings_are_read_from_them():
+    """Since per-object recipes, `forcegrasp experiment` records the settings a run trained with,
+    so a record keeps its meaning when the recipe later changes; the run's seed is not a lever."""
+    from forcegrasp.cli.experiment import effective_settings
+    from forcegrasp.config import load_config
+
+    def run(obj, *overrides):
+        config = load_config(env={}, overrides=[f"env.object={obj}", "run.seed=3", *overrides])
+        rec = {**record(3, {}, []), "object": obj, "config": config.to_dict(), "effective": effective_settings(config)}
+        return json.loads(json.dumps(rec))  # as read back from disk: tuples become lists
+    name = lambda r: ablation_table.lever_name(ablation_table.settings(r), r["object"])  # noqa: E731
+    assert name(run("camera")) == name(run("mug")) == "fast (the default)"
+    assert name(run("mug", "learner.sac.critic_layer_norm=false")) == "fast, − critic_layer_norm"
+    assert name(run("camera", "learner.sac.critic_layer_norm=true")) == "fast, critic_layer_norm = True"
+    assert name(run("camera", "learner.sac.critic_hidden=[512, 512]")) == "fast, critic_hidden = [512, 512]"
+    paper = run("mug", "learner.recipe=paper")
+    assert name(paper) == "fast, − critic_layer_norm, − privileged_critic, − updates_per_step"
+    # the record's own settings win over what its overrides would mean under today's recipe
+    paper["effective"]["sac"]["critic_layer_norm"] = True
+    assert name(paper) == "fast, − privileged_critic, − updates_per_step"

@@ -50,6 +50,12 @@ def test_recipes_are_presets_under_the_overrides(tmp_path):
     assert fast.updates_per_step == 0.25 and fast.privileged_critic and fast.batch_size == 128
     mine = sac_config(_config(tmp_path, "learner.recipe=fast", "learner.sac.privileged_critic=false"))
     assert not mine.privileged_critic  # an override beats the preset
+    # per-object settings (OBJECT_RECIPES): the mug's critic has LayerNorm under `fast` only, and an
+    # override beats that too
+    assert fast.critic_layer_norm and not paper.critic_layer_norm  # the default object is the mug
+    assert not sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=camera")).critic_layer_norm
+    assert not sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=mug",
+                                  "learner.sac.critic_layer_norm=false")).critic_layer_norm
     import pytest
 
     with pytest.raises(ConfigError):

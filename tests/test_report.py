@@ -88,7 +88,10 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     (run / "marks").mkdir(parents=True)
     shutil.copyfile(src.path, run / "marks" / "best-005.0.safetensors")
     config = load_config(env={}, overrides=[f"env.object={src.obj}", "run.name=r", "actor.demo_episodes=2"]).to_dict()
-    record = {"label": "x", "seed": 7, "test_seed": 0, "config": config, "marks": [
+    from forcegrasp.cli.experiment import effective_settings
+
+    effective = effective_settings(load_config(env={}, overrides=[f"env.object={src.obj}", "actor.demo_episodes=2"]))
+    record = {"label": "x", "seed": 7, "test_seed": 0, "config": config, "effective": effective, "marks": [
         {"minute": 5.0, "files": {"best": "best-005.0.safetensors"}, "steps": {"best": src.meta["picked_step"],
                                                                               "latest": 999999}, "test": {}}]}
     (run / "experiment.json").write_text(json.dumps(record))
@@ -99,6 +102,8 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert (out / f"{name}.safetensors").read_bytes() == src.path.read_bytes()
     assert meta["env_steps"] == 999999 and meta["wall_clock_min"] == 5.0 and meta["held_out"]["episodes"] == 3
     assert meta["recipe"]["actor"]["demo_episodes"] == 2
+    assert meta["recipe"]["sac"]["privileged_critic"] is True  # the recipe's settings, not only the overrides
+    assert meta["recipe"]["sac"]["critic_layer_norm"] is (src.obj == "mug")
     assert ship_main([str(run), "--mark", "10", "--out", str(out)]) == 2  # no such mark: a clear error
 
 

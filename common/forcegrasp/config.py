@@ -140,7 +140,8 @@ class LearnerConfig:
     ingest_queue: int = _f(1024, "received batches waiting to be decoded (the Zenoh callback's queue)", min=1)
     stats_every_s: float = _f(2.0, "seconds between stats messages and TensorBoard scalars", min=0.1)
     max_payload_mb: int = _f(64, "messages larger than this are rejected unread", min=1)
-    recipe: str = _f("fast", "SAC preset under the [learner.sac] overrides (docs/recipe.md): fast or paper",
+    recipe: str = _f("fast", "SAC preset under the [learner.sac] overrides, with its per-object settings "
+                            "(forcegrasp.recipes.OBJECT_RECIPES; docs/recipe.md): fast or paper",
                      choices=("fast", "paper"))
     sac: dict[str, Any] = _f({}, "overrides of forcegrasp.sac.SACConfig fields, e.g. batch_size = 256")
 

@@ -17,6 +17,17 @@ RECIPES: dict[str, dict] = {
     "fast": {"updates_per_step": 0.25, "privileged_critic": True},
 }
 
+#: Per-object settings on top of a recipe, under the [learner.sac] overrides: a lever that helped
+#: one object and cost another. Critic LayerNorm took the mug from picks of 193-321 k environment
+#: steps to 90 % held-out success to 67 k (two seeds and a same-machine control), but slowed the
+#: spray bottle 2-3x on two seeds, so only the mug has it (docs/recipe.md, 2026-12-05).
+OBJECT_RECIPES: dict[str, dict[str, dict]] = {"fast": {"mug": {"critic_layer_norm": True}}}
+
+
+def recipe_settings(recipe: str, object_name: str) -> dict:
+    """The SACConfig fields that recipe sets on that object (before any [learner.sac] override)."""
+    return {**RECIPES[recipe], **OBJECT_RECIPES.get(recipe, {}).get(object_name, {})}
+
 
 #: Scripted demonstrations per env by object, for ``actor.demo_episodes = -1`` (the default). The
 #: mug's grasp was never found in 30 minutes without them and by 20 minutes with 4 (two seeds);
@@ -30,7 +41,7 @@ def demo_episodes(object_name: str, configured: int) -> int:
 
 
 def sac_config(config) -> SACConfig:
-    """SACConfig with a `forcegrasp.config.Config`'s recipe, its [learner.sac] overrides and its run seed; unknown
+    """SACConfig with a `forcegrasp.config.Config`'s recipe (for its object), its [learner.sac] overrides and its run seed; unknown
     or ill-typed keys are a ConfigError. The learner and the actors (n-step horizon, discount, critic
     inputs) read SAC settings through this one function."""
     from forcegrasp.config import ConfigError
@@ -41,7 +52,7 @@ def sac_config(config) -> SACConfig:
         if key not in known:
             raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
         overrides[key] = tuple(value) if isinstance(value, list) else value
-    recipe = RECIPES[config.learner.recipe]
+    recipe = recipe_settings(config.learner.recipe, config.env.object)
     try:
         return dataclasses.replace(SACConfig(seed=config.run.seed), **{**recipe, **overrides})
     except (TypeError, ValueError) as exc:

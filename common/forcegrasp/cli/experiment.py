@@ -187,6 +187,18 @@ def summary_lines(record: dict) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------- running
+def effective_settings(config) -> dict:
+    """What the run trains with after its recipe's per-object defaults: every SAC setting and the
+    demonstrations per env. The record keeps them because `config` holds only the overrides, and a
+    later recipe may mean something else by the same overrides."""
+    import dataclasses
+
+    from forcegrasp.recipes import demo_episodes, sac_config
+
+    return {"sac": dataclasses.asdict(sac_config(config)),
+            "demo_episodes": demo_episodes(config.env.object, config.actor.demo_episodes)}
+
+
 def run_experiment(config, minutes: float, mark_every: float, episodes: int, test_seed: int, label: str,
                    evaluator: bool = True, workers: int | None = None, log=print) -> dict:
     from forcegrasp.cli.up import up
@@ -196,7 +208,8 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
     record = load_record(run_dir) or {
         "label": label, "seed": config.run.seed, "object": config.env.object,
         "force_feedback": config.env.force_feedback, "minutes": minutes, "mark_every": mark_every,
-        "episodes": episodes, "test_seed": test_seed, "elapsed_s": 0.0, "config": config.to_dict(), "marks": [],
+        "episodes": episodes, "test_seed": test_seed, "elapsed_s": 0.0, "config": config.to_dict(),
+        "effective": effective_settings(config), "marks": [],
     }
     record["minutes"] = minutes  # a resumed experiment may be given a longer budget
     save_record(run_dir, record)

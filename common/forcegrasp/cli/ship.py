@@ -54,7 +54,10 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
                              "demo_episodes": demo_episodes(meta.object_name,
-                                                            record["config"]["actor"].get("demo_episodes", 0))}},
+                                                            record["config"]["actor"].get("demo_episodes", 0))},
+                   # every SAC setting the run trained with, its recipe's per-object ones included
+                   # (records since 2026-12-05; earlier ones hold only the overrides above)
+                   "sac": (record.get("effective") or {}).get("sac")},
         "env": record["config"]["env"],
         "run": {"name": record["config"]["run"]["name"], "label": record.get("label"),
                 "machine": "2 CPU cores, no GPU; learner, 2 actors x 8 envs and the evaluator"},
