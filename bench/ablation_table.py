@@ -41,12 +41,11 @@ RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`
-DEFAULT = {**OFF, **RECIPES["fast"]}
 
 
 def default_for(object_name: str) -> dict:
     """The default recipe's settings on one object (demonstrations and `OBJECT_RECIPES` are per object)."""
-    return {**DEFAULT, **recipe_settings("fast", object_name), "demo_episodes": demo_episodes(object_name, -1)}
+    return {**OFF, **recipe_settings("fast", object_name), "demo_episodes": demo_episodes(object_name, -1)}
 
 
 def _same(a, b) -> bool:

@@ -42,6 +42,7 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     shutil.copyfile(src, dst.with_suffix(".tmp"))
     os.replace(dst.with_suffix(".tmp"), dst)
     sac = record["config"]["learner"]
+    effective = record.get("effective") or {}  # what the run trained with (records since 2026-12-05)
     sidecar = {
         "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "seed": record["seed"],
         "picked_step": int(meta.training_steps),
@@ -53,11 +54,11 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
         "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
-                             "demo_episodes": demo_episodes(meta.object_name,
-                                                            record["config"]["actor"].get("demo_episodes", 0))},
+                             "demo_episodes": effective.get("demo_episodes") if "demo_episodes" in effective
+                             else demo_episodes(meta.object_name, record["config"]["actor"].get("demo_episodes", 0))},
                    # every SAC setting the run trained with, its recipe's per-object ones included
-                   # (records since 2026-12-05; earlier ones hold only the overrides above)
-                   "sac": (record.get("effective") or {}).get("sac")},
+                   # (earlier records hold only the overrides above)
+                   "sac": effective.get("sac")},
         "env": record["config"]["env"],
         "run": {"name": record["config"]["run"]["name"], "label": record.get("label"),
                 "machine": "2 CPU cores, no GPU; learner, 2 actors x 8 envs and the evaluator"},
