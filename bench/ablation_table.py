@@ -8,9 +8,10 @@ sessions, so minutes compare only within one session).
 Levers are read from each record's configuration (its `effective` SAC settings and demonstrations
 where the record has them, else recipe preset + [learner.sac] overrides; + the actor and env keys
 of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they
-differ from the default recipe on that object (`forcegrasp.recipes.OBJECT_RECIPES`), so a record
-says itself what it measured. A mark a run never reached is "–", never a guess; the table's last
-column says how long each group's runs were. The label era comes from the file's prefix (the
+differ from the default recipe on that object (`forcegrasp.recipes.recipe_settings`, `OBJECT_DEMOS`),
+so a record says itself what it measured; a record without `effective` is read with the presets of
+its day (`EARLIER_RECIPES`, `EARLIER_DEMOS`). A mark a run never reached is "–", never a guess; the
+table's last column says how long each group's runs were. The label era comes from the file's prefix (the
 grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
 (issue 14; the mug's over-the-top label), `h-` the mug through the handle. The action step sizes
 became 1.5x on 2026-12-03: a record that names none ran at the first sizes, and runs at those read
@@ -29,7 +30,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from forcegrasp.config import Config
-from forcegrasp.recipes import RECIPES, demo_episodes, recipe_settings
+from forcegrasp.recipes import demo_episodes, recipe_settings
 from forcegrasp.sac import SACConfig
 from forcegrasp.task import ACTION_STEP_KEYS, FIRST_ACTION_STEPS
 
@@ -41,6 +42,10 @@ RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`
+#: The presets and default demonstrations as they were for every record without `effective` (made
+#: before 2026-12-05): such a record is read as trained with these, whatever today's default is.
+EARLIER_RECIPES = {"paper": {}, "fast": {"updates_per_step": 0.25, "privileged_critic": True}}
+EARLIER_DEMOS = {"mug": 4}
 
 
 def default_for(object_name: str) -> dict:
@@ -62,12 +67,14 @@ def settings(record: dict) -> dict:
         sac = {k: v for k, v in effective["sac"].items() if k in OFF and k != "seed" and not _same(v, OFF[k])}
     elif learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
         sac = {"updates_per_step": 0.25}
-    else:  # earlier records: their recipe had no per-object settings yet
-        sac = {**RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
+    else:  # earlier records: read with the presets of their day
+        sac = {**EARLIER_RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
     missing = {**OFF, **dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS))}  # records from before the step keys
     run = {key: (config.get(section) or {}).get(key, missing[key]) for section, keys in RUN_LEVERS.items() for key in keys}
-    run["demo_episodes"] = (effective["demo_episodes"] if effective is not None
-                            else demo_episodes(record.get("object", ""), run["demo_episodes"]))
+    if effective is not None:
+        run["demo_episodes"] = effective["demo_episodes"]
+    elif run["demo_episodes"] < 0:  # "the object's number", as it was then
+        run["demo_episodes"] = EARLIER_DEMOS.get(record.get("object", ""), 0)
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 

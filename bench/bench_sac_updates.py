@@ -128,7 +128,7 @@ def main(argv=None) -> int:
     parser.add_argument("--serial", action="store_true", help="run ForceGrasp's two gradient branches one after the other")
     parser.add_argument("--no-sb3", action="store_true", help="time ForceGrasp's SAC only")
     parser.add_argument("--layer-norm", action="store_true",
-                        help="also time ForceGrasp's SAC with critic LayerNorm (the mug's default, recipes.OBJECT_RECIPES)")
+                        help="also time ForceGrasp's SAC with critic LayerNorm (the default recipe's since 2026-12-05)")
     args = parser.parse_args(argv)
 
     from forcegrasp.policy import configure_threads, select_device, usable_cores

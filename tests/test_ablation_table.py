@@ -13,7 +13,9 @@ spec.loader.exec_module(ablation_table)
 STEPS = {"max_translation_step": 0.006, "max_rotation_step": 0.03, "max_h_step": 0.0375}  # today's default
 
 
-def record(seed, sac, marks, recipe="fast", demos=0):
+def record(seed, sac, marks, recipe="fast", demos=4, layer_norm=True):
+    """A record without `effective` (as before 2026-12-05), at today's default unless told otherwise."""
+    sac = {"critic_layer_norm": True, **sac} if layer_norm else sac
     return {"seed": seed, "object": "camera", "force_feedback": True,
             "config": {"learner": {"recipe": recipe, "sac": sac}, "actor": {"demo_episodes": demos},
                        "env": dict(STEPS)},
@@ -26,12 +28,15 @@ def test_lever_names_are_differences_from_the_default():
     assert name(record(0, {}, [])) == "fast (the default)"
     assert name(record(0, {"n_step": 3}, [])) == "fast, n_step = 3"
     assert name(record(0, {}, [], recipe="paper")) == "fast, − privileged_critic, − updates_per_step"
-    assert name(record(0, {}, [], demos=4)) == "fast, demo_episodes = 4"
-    mug = lambda demos, sac={"critic_layer_norm": True}: {**record(0, sac, [], demos=demos), "object": "mug"}  # noqa: E731
-    assert name(mug(4)) == name(mug(-1)) == "fast (the default)"  # the mug's default has demonstrations
+    assert name(record(0, {}, [], demos=0)) == "fast, − demo_episodes"
+    # a record without `effective` is read with the presets of its day: `fast` had no LayerNorm, and
+    # "-1 demonstrations" meant 4 on the mug and none elsewhere
+    assert name(record(0, {}, [], layer_norm=False)) == "fast, − critic_layer_norm"
+    assert name(record(0, {}, [], demos=-1)) == "fast, − demo_episodes"
+    mug = lambda demos, ln=True: {**record(0, {}, [], demos=demos, layer_norm=ln), "object": "mug"}  # noqa: E731
+    assert name(mug(4)) == name(mug(-1)) == "fast (the default)"
     assert name(mug(0)) == "fast, − demo_episodes"
-    # ... and critic LayerNorm (OBJECT_RECIPES): a mug record from before it, trained without, says so
-    assert name(mug(-1, {})) == "fast, − critic_layer_norm"
+    assert name(mug(-1, ln=False)) == "fast, − critic_layer_norm"
     more_envs = record(0, {"updates_per_step": 0.1}, [])
     more_envs["config"]["actor"]["envs_per_actor"] = 16
     more_envs["config"]["env"] = {**STEPS, "max_translation_step": 0.008}
@@ -90,7 +95,7 @@ def test_records_with_effective_settings_are_read_from_them():
     name = lambda r: ablation_table.lever_name(ablation_table.settings(r), r["object"])  # noqa: E731
     assert name(run("camera")) == name(run("mug")) == "fast (the default)"
     assert name(run("mug", "learner.sac.critic_layer_norm=false")) == "fast, − critic_layer_norm"
-    assert name(run("camera", "learner.sac.critic_layer_norm=true")) == "fast, critic_layer_norm = True"
+    assert name(run("camera", "actor.demo_episodes=0")) == "fast, − demo_episodes"
     assert name(run("camera", "learner.sac.critic_hidden=[512, 512]")) == "fast, critic_hidden = [512, 512]"
     paper = run("mug", "learner.recipe=paper")
     assert name(paper) == "fast, − critic_layer_norm, − privileged_critic, − updates_per_step"

@@ -39,25 +39,31 @@ def test_actor_seeds_follow_run_seed(tmp_path):
     assert seeds == {0: ["1000", "2000"], 7: ["1007", "2007"]}
 
 
-def test_recipes_are_presets_under_the_overrides(tmp_path):
+def test_recipes_are_presets_under_the_overrides(tmp_path, monkeypatch):
+    import pytest
+
+    import forcegrasp.recipes
     from forcegrasp.config import ConfigError
-    from forcegrasp.recipes import sac_config
+    from forcegrasp.recipes import demo_episodes, sac_config
     from forcegrasp.sac import SACConfig
 
     paper = sac_config(_config(tmp_path, "learner.recipe=paper"))
     assert paper.updates_per_step == SACConfig().updates_per_step and not paper.privileged_critic
+    assert not paper.critic_layer_norm
     fast = sac_config(_config(tmp_path, "learner.recipe=fast", "learner.sac.batch_size=128"))
     assert fast.updates_per_step == 0.25 and fast.privileged_critic and fast.batch_size == 128
+    assert fast.critic_layer_norm
     mine = sac_config(_config(tmp_path, "learner.recipe=fast", "learner.sac.privileged_critic=false"))
     assert not mine.privileged_critic  # an override beats the preset
-    # per-object settings (OBJECT_RECIPES): the mug's critic has LayerNorm under `fast` only, and an
-    # override beats that too
-    assert fast.critic_layer_norm and not paper.critic_layer_norm  # the default object is the mug
+    # per-object settings (OBJECT_RECIPES) go on the preset, under the overrides, for their recipe only
+    monkeypatch.setitem(forcegrasp.recipes.OBJECT_RECIPES, "fast", {"camera": {"critic_layer_norm": False}})
     assert not sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=camera")).critic_layer_norm
-    assert not sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=mug",
-                                  "learner.sac.critic_layer_norm=false")).critic_layer_norm
-    import pytest
-
+    assert sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=mug")).critic_layer_norm
+    assert sac_config(_config(tmp_path, "learner.recipe=fast", "env.object=camera",
+                                  "learner.sac.critic_layer_norm=true")).critic_layer_norm
+    # demonstrations: -1 is the object's number (4 on every object today), an explicit one is taken as is
+    assert [demo_episodes(o, -1) for o in ("mug", "camera", "power_drill", "spray_bottle")] == [4, 4, 4, 4]
+    assert demo_episodes("camera", 0) == 0 and demo_episodes("mug", 2) == 2
     with pytest.raises(ConfigError):
         _config(tmp_path, "learner.recipe=magic")
 

@@ -265,32 +265,35 @@ def test_actor_ema_hands_out_the_polyak_average_and_checkpoints_it(tmp_path):
     assert all(torch.equal(v, back.deployed_actor.state_dict()[k]) for k, v in avg.items())
 
 
-def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures():
-    """Scripted demonstrations told the true offset: they reach the goal (the success bonus is in
-    the batch), each env plays its quota and then acts for itself, and the policy's own episode
-    counts ignore them."""
+@pytest.mark.parametrize("obj", ["mug", "camera", "power_drill", "spray_bottle"])
+def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures(obj):
+    """Scripted demonstrations told the true offset: they reach the goal on every object (the
+    success bonus is in the batch; the camera's told approach misses some placements: 21 of 24 in a
+    probe, the other objects' none), each env plays its quota and then acts for itself, and the
+    policy's own episode counts ignore them."""
     from forcegrasp.acting import Actor
     from forcegrasp.config import load_config
 
-    config = load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=2", "actor.demo_episodes=1",
+    config = load_config(env={}, overrides=[f"env.object={obj}", "actor.envs_per_actor=2", "actor.demo_episodes=1",
                                             "actor.publish_batch=100000", "learner.recipe=fast"])
     actor = Actor(config, "a", seed=3)
     for _ in range(200):  # a demonstration ends well inside 200 steps; then random actions
         actor.step()
     batch = actor._package()
     assert actor.demo_episodes == 2 and actor._demo == [None, None]
-    assert actor.demo_successes == 2  # the mug's told approach succeeds on every placement tried
+    assert actor.demo_successes == 2 or (obj == "camera" and actor.demo_successes == 1)
     assert actor.episodes == 0 or actor.successes < actor.episodes  # random actions don't grasp
-    assert (batch.reward > 500).sum() == 2 and batch.terminated.sum() >= 2  # two bonuses, two ends
+    assert (batch.reward > 500).sum() == actor.demo_successes  # one bonus per successful demonstration
+    assert batch.terminated.sum() >= actor.demo_successes
     assert batch.privileged.shape == (400, 14)
     assert batch.episode_successes is None or not batch.episode_successes.any()
 
 
-@pytest.mark.parametrize("obj, configured, expected", [("mug", None, 4), ("camera", None, 0), ("mug", 0, 0),
-                                                        ("camera", 2, 2)])
+@pytest.mark.parametrize("obj, configured, expected", [("mug", None, 4), ("camera", None, 4), ("mug", 0, 0),
+                                                        ("camera", 0, 0), ("camera", 2, 2)])
 def test_demonstrations_default_to_the_recipes_number_for_the_object(obj, configured, expected):
-    """`actor.demo_episodes = -1` (the default): the mug's envs owe 4 demonstrations each, other
-    objects' none; a number the user sets is taken as it is."""
+    """`actor.demo_episodes = -1` (the default): every object's envs owe 4 demonstrations each
+    (`OBJECT_DEMOS`); a number the user sets, 0 included, is taken as it is."""
     from forcegrasp.acting import Actor
     from forcegrasp.config import load_config
 

@@ -11,17 +11,19 @@ from forcegrasp.sac import SACConfig
 
 #: Named presets of SACConfig fields (``learner.recipe``); [learner.sac] overrides go on top.
 #: "paper": the paper's settings (one update per environment step, a critic that sees what the
-#: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines.
+#: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines:
+#: a quarter update per step, the asymmetric critic, and critic LayerNorm (with the demonstrations
+#: of `OBJECT_DEMOS`: LayerNorm alone slowed the spray bottle 2-3x, with them every object tried
+#: passed 90 % by its 5-minute mark; docs/recipe.md, 2026-12-05).
 RECIPES: dict[str, dict] = {
     "paper": {},
-    "fast": {"updates_per_step": 0.25, "privileged_critic": True},
+    "fast": {"updates_per_step": 0.25, "privileged_critic": True, "critic_layer_norm": True},
 }
 
-#: Per-object settings on top of a recipe, under the [learner.sac] overrides: a lever that helped
-#: one object and cost another. Critic LayerNorm took the mug from picks of 193-321 k environment
-#: steps to 90 % held-out success to 67 k (two seeds and a same-machine control), but slowed the
-#: spray bottle 2-3x on two seeds, so only the mug has it (docs/recipe.md, 2026-12-05).
-OBJECT_RECIPES: dict[str, dict[str, dict]] = {"fast": {"mug": {"critic_layer_norm": True}}}
+#: Per-object settings on top of a recipe, under the [learner.sac] overrides: for a lever that helps
+#: one object and costs another. None today: critic LayerNorm was the mug's alone in the twenty-first
+#: session, until with demonstrations it held on every object (docs/recipe.md, 2026-12-05).
+OBJECT_RECIPES: dict[str, dict[str, dict]] = {"fast": {}}
 
 
 def recipe_settings(recipe: str, object_name: str) -> dict:
@@ -30,9 +32,10 @@ def recipe_settings(recipe: str, object_name: str) -> dict:
 
 
 #: Scripted demonstrations per env by object, for ``actor.demo_episodes = -1`` (the default). The
-#: mug's grasp was never found in 30 minutes without them and by 20 minutes with 4 (two seeds);
-#: the camera learned no faster with them (docs/recipe.md), so other objects get none.
-OBJECT_DEMOS: dict[str, int] = {"mug": 4}
+#: mug's grasp was never found in 30 minutes without them; with critic LayerNorm they keep the
+#: entropy temperature from collapsing before the first success (the spray bottle), so every object
+#: gets 4 (docs/recipe.md).
+OBJECT_DEMOS: dict[str, int] = {"mug": 4, "camera": 4, "power_drill": 4, "spray_bottle": 4}
 
 
 def demo_episodes(object_name: str, configured: int) -> int:
