@@ -151,18 +151,20 @@ def test_action_step_sizes_are_a_lever_that_travels_with_the_policy(tmp_path):
 
 
 def test_policy_files_of_earlier_step_sizes_still_run_at_their_own():
-    """The default step sizes grew 1.5x on 2026-12-03: the shipped policies, trained at the first
-    sizes, record them and are rebuilt at them; an env at today's default refuses them clearly; a
-    file recording no sizes at all is taken to be of the first sizes."""
+    """The default step sizes grew 1.5x on 2026-12-03: a policy trained at the first sizes (a
+    committed run's pick) records them and is rebuilt at them; an env at today's default refuses it
+    clearly; a file recording no sizes at all is taken to be of the first sizes."""
     from forcegrasp.task import ACTION_STEP_KEYS, ACTION_STEPS, FIRST_ACTION_STEPS, action_steps_of, check_policy
 
     assert ACTION_STEPS == pytest.approx(tuple(1.5 * x for x in FIRST_ACTION_STEPS))
-    _, meta = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")
+    _, meta = load_policy_file(REPO / "docs" / "recipe-runs" / "n-fast-camera-s0-best.safetensors")
     assert tuple(action_steps_of(meta).values()) == pytest.approx(FIRST_ACTION_STEPS)
     assert FunctionalGraspEnv.for_policy(meta)._action_scale[[0, 3, 6]] == pytest.approx(FIRST_ACTION_STEPS)
-    check_policy(meta, "mug", True, dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS)))
+    check_policy(meta, "camera", True, dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS)))
     with pytest.raises(ValueError, match="action steps"):
-        check_policy(meta, "mug", True)
+        check_policy(meta, "camera", True)
+    _, shipped = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")
+    check_policy(shipped, "mug", True)  # the shipped policies are of today's sizes
     unrecorded = dataclasses.replace(meta, action_high=None, action_low=None)
     assert tuple(action_steps_of(unrecorded).values()) == FIRST_ACTION_STEPS
 
