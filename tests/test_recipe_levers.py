@@ -176,13 +176,13 @@ def test_an_actor_refuses_weights_of_other_step_sizes():
     from forcegrasp.config import load_config
     from forcegrasp.task import action_steps_of
 
-    weights, meta = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")  # first sizes
-    actor = Actor(load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=1"]), "a", seed=0)
+    weights, meta = load_policy_file(REPO / "docs" / "recipe-runs" / "n-fast-camera-s0-best.safetensors")  # first sizes
+    actor = Actor(load_config(env={}, overrides=["env.object=camera", "actor.envs_per_actor=1"]), "a", seed=0)
     with pytest.raises(ValueError, match="action steps"):
         actor.update(weights, meta, 1)
     assert actor.policy is None
     first = [f"env.{k}={v}" for k, v in action_steps_of(meta).items()]
-    actor = Actor(load_config(env={}, overrides=["env.object=mug", "actor.envs_per_actor=1", *first]), "a", seed=0)
+    actor = Actor(load_config(env={}, overrides=["env.object=camera", "actor.envs_per_actor=1", *first]), "a", seed=0)
     assert actor.update(weights, meta, 1) and actor.policy is not None
 
 
