@@ -30,7 +30,7 @@ from collections import defaultdict
 from pathlib import Path
 
 from forcegrasp.config import Config
-from forcegrasp.recipes import demo_episodes, recipe_settings
+from forcegrasp.recipes import EARLIER_RECIPES, demo_episodes, earlier_demo_episodes, recipe_settings
 from forcegrasp.sac import SACConfig
 from forcegrasp.task import ACTION_STEP_KEYS, FIRST_ACTION_STEPS
 
@@ -42,10 +42,6 @@ RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`
-#: The presets and default demonstrations as they were for every record without `effective` (made
-#: before 2026-12-05): such a record is read as trained with these, whatever today's default is.
-EARLIER_RECIPES = {"paper": {}, "fast": {"updates_per_step": 0.25, "privileged_critic": True}}
-EARLIER_DEMOS = {"mug": 4}
 
 
 def default_for(object_name: str) -> dict:
@@ -73,8 +69,8 @@ def settings(record: dict) -> dict:
     run = {key: (config.get(section) or {}).get(key, missing[key]) for section, keys in RUN_LEVERS.items() for key in keys}
     if effective is not None:
         run["demo_episodes"] = effective["demo_episodes"]
-    elif run["demo_episodes"] < 0:  # "the object's number", as it was then
-        run["demo_episodes"] = EARLIER_DEMOS.get(record.get("object", ""), 0)
+    else:  # "-1: the object's number", as it was then
+        run["demo_episodes"] = earlier_demo_episodes(record.get("object", ""), run["demo_episodes"])
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 

@@ -38,6 +38,17 @@ def recipe_settings(recipe: str, object_name: str) -> dict:
 OBJECT_DEMOS: dict[str, int] = {"mug": 4, "camera": 4, "power_drill": 4, "spray_bottle": 4}
 
 
+#: The presets and default demonstrations as they were for every run record without `effective`
+#: (made before 2026-12-05): such a record is read as trained with these, whatever today's default is.
+EARLIER_RECIPES: dict[str, dict] = {"paper": {}, "fast": {"updates_per_step": 0.25, "privileged_critic": True}}
+EARLIER_DEMOS: dict[str, int] = {"mug": 4}
+
+
+def earlier_demo_episodes(object_name: str, configured: int) -> int:
+    """What ``actor.demo_episodes = configured`` meant for a record without `effective`."""
+    return EARLIER_DEMOS.get(object_name, 0) if configured < 0 else int(configured)
+
+
 def demo_episodes(object_name: str, configured: int) -> int:
     """Demonstrations per env that ``actor.demo_episodes = configured`` means for this object."""
     return OBJECT_DEMOS.get(object_name, 0) if configured < 0 else int(configured)

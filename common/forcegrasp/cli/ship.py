@@ -21,7 +21,7 @@ from pathlib import Path
 def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
     from forcegrasp.cli.experiment import load_record, test_files
     from forcegrasp.policy_file import load_policy_file
-    from forcegrasp.recipes import demo_episodes
+    from forcegrasp.recipes import earlier_demo_episodes
 
     record = load_record(run_dir)
     if record is None:
@@ -55,7 +55,7 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
                              "demo_episodes": effective.get("demo_episodes") if "demo_episodes" in effective
-                             else demo_episodes(meta.object_name, record["config"]["actor"].get("demo_episodes", 0))},
+                             else earlier_demo_episodes(meta.object_name, record["config"]["actor"].get("demo_episodes", 0))},
                    # every SAC setting the run trained with, its recipe's per-object ones included
                    # (earlier records hold only the overrides above)
                    "sac": effective.get("sac")},
