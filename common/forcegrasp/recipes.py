@@ -46,12 +46,14 @@ EARLIER_DEMOS: dict[str, int] = {"mug": 4}
 
 def earlier_demo_episodes(object_name: str, configured: int) -> int:
     """What ``actor.demo_episodes = configured`` meant for a record without `effective`."""
-    return EARLIER_DEMOS.get(object_name, 0) if configured < 0 else int(configured)
+    return demo_episodes(object_name, configured, EARLIER_DEMOS)
 
 
-def demo_episodes(object_name: str, configured: int) -> int:
-    """Demonstrations per env that ``actor.demo_episodes = configured`` means for this object."""
-    return OBJECT_DEMOS.get(object_name, 0) if configured < 0 else int(configured)
+def demo_episodes(object_name: str, configured: int, per_object: dict[str, int] | None = None) -> int:
+    """Demonstrations per env that ``actor.demo_episodes = configured`` means for this object
+    (a negative number: the object's entry in ``per_object``, today's ``OBJECT_DEMOS`` unless given)."""
+    table = OBJECT_DEMOS if per_object is None else per_object
+    return table.get(object_name, 0) if configured < 0 else int(configured)
 
 
 def sac_config(config) -> SACConfig:
