@@ -59,7 +59,7 @@ def write_checkpoint(config, step, data: bytes) -> Path:
     return path
 
 
-def fake_score(policy, weights, meta, places, kind, step) -> EvalResult:
+def fake_score(policy, weights, meta, places, kind, step, condition=None) -> EvalResult:
     """Scores read from the policy's metadata: the test decides them."""
     return EvalResult(score=float(meta.extra["fake"][kind]), success_rate=0.25, episodes=len(places))
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from forcegrasp.env import PRIVILEGED_LAYOUT, FunctionalGraspEnv, observation_layout
+from forcegrasp.env import PRIV_DIM, PRIVILEGED_LAYOUT, FunctionalGraspEnv, observation_layout
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_file
 from forcegrasp.replay import ReplayBuffer
@@ -94,12 +94,13 @@ def test_env_privileged_state_is_outside_the_observation():
     assert priv.shape == (sum(n for _, n in PRIVILEGED_LAYOUT),) and priv.dtype == np.float32
     assert np.allclose(priv[:2], (1.0, -0.5)) and np.allclose(priv[5:8], 0.0, atol=1e-4)  # cm
     assert obs.shape == (sum(n for _, n in observation_layout(True)),)  # Table I, 77: unchanged
-    assert priv[8:].sum() == 0  # the pre-grasp touches nothing
+    assert priv[8:14].sum() == 0  # the pre-grasp touches nothing
+    assert np.allclose(priv[14:16], (np.log(5.0), 0.0))  # the episode's conditions: 5x mass, no noise
     for _ in range(60):  # close the hand on the object: contacts appear in the flags
         obs, *_ , info = env.step(np.array([0, 0, 0, 0, 0, 0, 1.0]))
         if info["step"] and env.privileged_state()[13]:
             break
-    assert np.all(np.isin(env.privileged_state()[8:], (0.0, 1.0)))
+    assert np.all(np.isin(env.privileged_state()[8:14], (0.0, 1.0)))
 
 
 def test_service_written_policies_carry_the_env_action_scaling(tmp_path):
@@ -201,14 +202,14 @@ def test_privileged_and_horizon_fields_are_validated_on_the_wire():
     from forcegrasp.protocol import DEFAULT_LIMITS, ProtocolError, decode_transitions, encode_transitions
     from forcegrasp.protocol.wire import pack as _pack, unpack as _unpack
 
-    good = _batch(priv=np.zeros((8, 14)), horizon=np.full(8, 3))
-    back = decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=14)
-    assert back.privileged.shape == (8, 14) and list(back.horizon) == [3] * 8
+    good = _batch(priv=np.zeros((8, PRIV_DIM)), horizon=np.full(8, 3))
+    back = decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=PRIV_DIM)
+    assert back.privileged.shape == (8, PRIV_DIM) and list(back.horizon) == [3] * 8
     with pytest.raises(ProtocolError) as e:  # this learner has no privileged critic
         decode_transitions(encode_transitions(good), obs_dim=77, act_dim=7, priv_dim=0)
     assert e.value.reason == "shape"
     with pytest.raises(ProtocolError) as e:  # this one needs it
-        decode_transitions(encode_transitions(_batch()), obs_dim=77, act_dim=7, priv_dim=14)
+        decode_transitions(encode_transitions(_batch()), obs_dim=77, act_dim=7, priv_dim=PRIV_DIM)
     assert e.value.reason == "missing_field"
 
     def tampered(**fields):
@@ -219,17 +220,17 @@ def test_privileged_and_horizon_fields_are_validated_on_the_wire():
     from forcegrasp.protocol import encode_array
 
     cases = {
-        "nonfinite": tampered(privileged=encode_array(np.full((8, 14), np.nan, np.float32))),
-        "bad_field": tampered(privileged=encode_array(np.full((8, 14), 1e4, np.float32))),
+        "nonfinite": tampered(privileged=encode_array(np.full((8, PRIV_DIM), np.nan, np.float32))),
+        "bad_field": tampered(privileged=encode_array(np.full((8, PRIV_DIM), 1e4, np.float32))),
         "shape": tampered(next_privileged=encode_array(np.zeros((8, 13), np.float32))),
         "dtype": tampered(horizon=encode_array(np.full(8, 3, np.int64))),
     }
     for reason, payload in cases.items():
         with pytest.raises(ProtocolError) as e:
-            decode_transitions(payload, obs_dim=77, act_dim=7, priv_dim=14)
+            decode_transitions(payload, obs_dim=77, act_dim=7, priv_dim=PRIV_DIM)
         assert e.value.reason == reason, reason
     with pytest.raises(ProtocolError) as e:
-        decode_transitions(tampered(horizon=encode_array(np.full(8, 0, np.int32))), obs_dim=77, act_dim=7, priv_dim=14)
+        decode_transitions(tampered(horizon=encode_array(np.full(8, 0, np.int32))), obs_dim=77, act_dim=7, priv_dim=PRIV_DIM)
     assert e.value.reason == "bad_field"
 
 
@@ -242,10 +243,10 @@ def test_learner_counts_and_drops_bad_privileged_state(tmp_path):
                                     "learner.sac.buffer_size=1000", "learner.sac.privileged_critic=true"])
     service = LearnerService(config)
     key = Keys("asym").transitions("a")
-    assert service.ingest(key, encode_transitions(_batch(priv=np.zeros((8, 14))))) == 8
+    assert service.ingest(key, encode_transitions(_batch(priv=np.zeros((8, PRIV_DIM))))) == 8
     assert service.ingest(key, encode_transitions(_batch())) == 0  # an actor without privileged state
     assert len(service.buffer) == 8 and service.rejects.counts() == {"missing_field": 1}
-    assert service.buffer.sample(4, np.random.default_rng(0)).privileged.shape == (4, 14)
+    assert service.buffer.sample(4, np.random.default_rng(0)).privileged.shape == (4, PRIV_DIM)
 
 
 def test_actor_ema_hands_out_the_polyak_average_and_checkpoints_it(tmp_path):
@@ -287,7 +288,7 @@ def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures(obj):
     assert actor.episodes == 0 or actor.successes < actor.episodes  # random actions don't grasp
     assert (batch.reward > 500).sum() == actor.demo_successes  # one bonus per successful demonstration
     assert batch.terminated.sum() >= actor.demo_successes
-    assert batch.privileged.shape == (400, 14)
+    assert batch.privileged.shape == (400, PRIV_DIM)
     assert batch.episode_successes is None or not batch.episode_successes.any()
 
 

@@ -63,6 +63,12 @@ class EnvConfig:
     mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
     torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
+    # Domain randomisation (off when empty): drawn afresh every training episode, recorded in every
+    # policy file and seen by the asymmetric critic (task.PRIVILEGED_LAYOUT "domain"), never by the policy.
+    mass_scale_range: list[float] = _f([], "per-episode mass multiplier drawn log-uniformly from [low, high] "
+                                           "(empty: mass_scale in every episode)")
+    torque_noise_range: list[float] = _f([], "per-episode torque noise sigma drawn uniformly from [low, high] N*m "
+                                             "(empty: torque_noise_std in every episode)")
     max_steps: int = _f(200, "episode length limit", min=1)
     torque_history: int = _f(0, "joint torques of this many previous steps added to the observation (24 each; "
                                 "changes Table I: a lever reported apart, never the default)", min=0)
@@ -154,6 +160,9 @@ class EvaluatorConfig:
     eval_episodes: int = _f(10, "episodes per periodic evaluation", min=1)
     top_k: int = _f(5, "best checkpoints kept", min=1)
     final_rank_episodes: int = _f(100, "episodes per top-k checkpoint in the final ranking", min=1)
+    conditions: list[str] = _f([], "test conditions a checkpoint is scored on, each with eval_episodes and "
+                                   "final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: "
+                                   "5x, 1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's env")
     keep_episode_logs: str = _f("top", "MCAP episode logs kept: of the top-k checkpoints and the latest, or all",
                                 choices=("top", "all"))
     http_host: str = _f("127.0.0.1", "address of the evaluator's HTTP page")
@@ -311,6 +320,11 @@ def _coerce(value: Any, ftype: Any, key: str, source: str) -> Any:
         want = getattr(ftype, "__name__", str(ftype))
         return ConfigError(f"{source}: {key} = {value!r} is not a valid {want}{why}")
 
+    if ftype == list[float]:
+        items = _split_list(value) if isinstance(value, str) else value
+        if not isinstance(items, list):
+            raise bad(" (a list of numbers)")
+        return [_coerce(i, float, key, source) for i in items]
     if typing.get_origin(ftype) is list:
         items = _split_list(value) if isinstance(value, str) else value
         if not isinstance(items, list) or not all(isinstance(i, str) for i in items):
@@ -379,6 +393,17 @@ def _check_cross_fields(config: Config) -> None:
         # object and are restarted forever says less than one line.
         raise ConfigError(f"env.object: unknown object {config.env.object!r}; valid objects: "
                           f"{', '.join(list_objects())}")
+    for key, low in (("mass_scale_range", 0.0), ("torque_noise_range", None)):
+        span = getattr(config.env, key)
+        if span and (len(span) != 2 or span[0] > span[1] or span[0] < 0 or (low is not None and span[0] <= low)):
+            raise ConfigError(f"env.{key} = {span!r} must be empty or [low, high] with "
+                              f"{'0 < low' if low is not None else '0 <= low'} <= high")
+    from forcegrasp.conditions import check_conditions
+
+    try:
+        check_conditions(config.evaluator.conditions, "evaluator.conditions")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
     if config.env.torque_history and not config.env.force_feedback:
         raise ConfigError("env.torque_history needs env.force_feedback = true: without it no torques are observed")
     if not config.network.learner_listen:

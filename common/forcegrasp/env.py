@@ -63,6 +63,16 @@ _ACTION_LIMIT = 1.0 + 1e-6  # actions are in [-1, 1]; this much float slack is t
 MAX_OFFSET_DRAWS = 100
 
 
+def _span(name: str, span, *, positive: bool) -> tuple[float, float] | None:
+    """A randomisation range as (low, high), or None when off (None or empty)."""
+    if span is None or len(span) == 0:
+        return None
+    low, high = (float(x) for x in span)
+    if not (np.isfinite(low) and np.isfinite(high) and (low > 0 if positive else low >= 0) and low <= high):
+        raise ValueError(f"{name} must be (low, high) with {'0 <' if positive else '0 <='} low <= high, got {span!r}")
+    return low, high
+
+
 def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, what: str = "the object") -> np.ndarray:
     """An offset (dx, dy) uniform in the ±jitter square, redrawn while ``is_clear(offset)`` says no:
     the one sampling rule of random resets, evaluation placements and the scripted benches."""
@@ -98,6 +108,8 @@ class FunctionalGraspEnv(gym.Env):
         max_rotation_step: float = ACTION_STEPS[1],
         max_h_step: float = ACTION_STEPS[2],
         torque_history: int = 0,
+        mass_scale_range: tuple[float, float] | None = None,
+        torque_noise_range: tuple[float, float] | None = None,
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
@@ -106,6 +118,8 @@ class FunctionalGraspEnv(gym.Env):
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if not (np.isfinite(jitter) and jitter >= 0) or not (np.isfinite(torque_noise_std) and torque_noise_std >= 0):
             raise ValueError(f"jitter and torque_noise_std must be >= 0, got {jitter!r}, {torque_noise_std!r}")
+        self.mass_scale_range = _span("mass_scale_range", mass_scale_range, positive=True)
+        self.torque_noise_range = _span("torque_noise_range", torque_noise_range, positive=False)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
         self.object_spec = load_object(object_name)
@@ -121,6 +135,11 @@ class FunctionalGraspEnv(gym.Env):
         self.model = build_model(self.object_spec, self.mass_scale)
         self.data = mujoco.MjData(self.model)
         self.ix = SceneIndex.of(self.model)
+        # This episode's conditions: the fixed settings, or per-episode draws from the ranges.
+        self.episode_mass_scale, self.episode_noise_std = self.mass_scale, self.torque_noise_std
+        body = self.ix.object_body
+        self._unit_mass = self.model.body_mass[body] / self.mass_scale
+        self._unit_inertia = self.model.body_inertia[body] / self.mass_scale
         self.slides = slide_axes(self.model)
         self._rest_z = resting_height(self.model)
         self._action_scale = action_scale(max_translation_step, max_rotation_step, max_h_step)
@@ -185,6 +204,7 @@ class FunctionalGraspEnv(gym.Env):
                 raise ValueError(f"{self.object_spec.name} at offset ({offset[0]:+.4f}, {offset[1]:+.4f}) m starts "
                                  f"{depth * 1000:.1f} mm inside the pre-grasp hand; choose a clear placement "
                                  "(FunctionalGraspEnv.overlap tells)")
+        self._draw_conditions()
         self._start_pose(d, offset)
         self.offset = offset
         self.object_start = self._object_pos.copy()
@@ -257,6 +277,25 @@ class FunctionalGraspEnv(gym.Env):
                 if not np.all(np.isfinite(action)) else f"components must lie in [-1, 1], got {action}")
         raise ValueError(f"action {what}")
 
+    def _draw_conditions(self) -> None:
+        """Draw this episode's mass (log-uniform) and torque-noise sigma (uniform) from their ranges;
+        a uniform density scales mass and inertia alike, and mj_setConst refreshes what depends on them."""
+        if self.torque_noise_range is not None:
+            self.episode_noise_std = float(self.np_random.uniform(*self.torque_noise_range))
+        if self.mass_scale_range is not None:
+            low, high = np.log(self.mass_scale_range)
+            self.set_mass_scale(float(np.exp(self.np_random.uniform(low, high))))
+
+    def set_mass_scale(self, scale: float) -> None:
+        """Make the object ``scale`` times its nominal mass from the next reset on."""
+        if not np.isfinite(scale) or scale <= 0:
+            raise ValueError(f"mass scale must be positive, got {scale!r}")
+        body = self.ix.object_body
+        self.model.body_mass[body] = self._unit_mass * scale
+        self.model.body_inertia[body] = self._unit_inertia * scale
+        mujoco.mj_setConst(self.model, self.data)
+        self.episode_mass_scale = float(scale)
+
     def _observed_h(self) -> float:
         x = self._h_scratch
         np.multiply(np.abs(np.subtract(self._hand_q, self._Jg, out=x), out=x), self._inv_span, out=x)
@@ -272,8 +311,8 @@ class FunctionalGraspEnv(gym.Env):
                 obs[at["torque_history"]] = np.roll(obs[at["torque_history"]], 24)
                 obs[at["torque_history"]][:24] = obs[at["joint_torques"]]
             obs[at["joint_torques"]] = self._hand_force
-            if self.torque_noise_std > 0:
-                obs[at["joint_torques"]] += self.np_random.normal(0.0, self.torque_noise_std, 24)
+            if self.episode_noise_std > 0:
+                obs[at["joint_torques"]] += self.np_random.normal(0.0, self.episode_noise_std, 24)
         obs[at["joint_angles"]], obs[at["hand_pose"]], obs[at["h"]] = self._hand_q, self._base_q, h
         obs[at["base_targets"]], obs[at["prev_hand_pose"]], obs[at["prev_h"]] = self.base_target, self._prev_pose, self._prev_h
         return obs.copy()
@@ -291,6 +330,7 @@ class FunctionalGraspEnv(gym.Env):
             for k, geom in enumerate(self._fingertips):
                 out[8 + k] = float((other == geom).any())
             out[13] = float(self._is_hand_geom[other].any())
+        out[14:16] = np.log(self.episode_mass_scale), self.episode_noise_std
         return out
 
     def palm_position(self) -> np.ndarray:

@@ -73,6 +73,7 @@ class EvalResult:
     steps: int = 0
     seconds: float = 0.0
     returns: list[float] = field(default_factory=list)
+    conditions: dict = field(default_factory=dict)  # per test condition, when several were mixed
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -36,7 +36,8 @@ from forcegrasp.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
 
-#: ``score_fn(policy, weights, metadata, placements, kind, step) -> EvalResult``; kind is "eval" or "rank".
+#: ``score_fn(policy, weights, metadata, placements, kind, step, condition=None) -> EvalResult``; kind is
+#: "eval" or "rank", condition a `forcegrasp.conditions` name or None (the run's own env).
 ScoreFn = Callable[..., EvalResult]
 
 
@@ -74,10 +75,15 @@ class Ranker:
         self.dir.mkdir(parents=True, exist_ok=True)
         self._lock_file = self._take_lock()
         ev = config.evaluator
-        self.env = None
-        clear = self._ensure_env().is_clear
-        self.eval_places = placements(config.run.seed, ev.eval_episodes, config.env.jitter, "eval", clear)
-        self.rank_places = placements(config.run.seed, ev.final_rank_episodes, config.env.jitter, "rank", clear)
+        # Test conditions (forcegrasp.conditions), each with its own env and placements; None is
+        # the run's own env settings, the one condition when evaluator.conditions is empty.
+        self.conditions: list[str | None] = list(ev.conditions) or [None]
+        self.envs: dict = {}
+        self.eval_places, self.rank_places = {}, {}
+        for c in self.conditions:
+            env = self._ensure_env(c)
+            self.eval_places[c] = placements(config.run.seed, ev.eval_episodes, env.jitter, "eval", env.is_clear)
+            self.rank_places[c] = placements(config.run.seed, ev.final_rank_episodes, env.jitter, "rank", env.is_clear)
         self.top = TopK(self.files.top, ev.top_k, run=config.run.name)
         self.log_episodes = log_episodes
         self.mcap_backend = mcap_backend
@@ -109,8 +115,8 @@ class Ranker:
         """Release the run's evaluator lock (also released by the kernel when the process dies)."""
         if self._lock_file is not None and not self._lock_file.closed:
             self._lock_file.close()
-        if self.env is not None:
-            self.env.close()
+        for env in self.envs.values():
+            env.close()
 
     def __enter__(self):
         return self
@@ -128,10 +134,12 @@ class Ranker:
                 **({"torque_history": e.torque_history} if e.torque_history else {}),
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
                 "final_rank_episodes": ev.final_rank_episodes,
+                **({"conditions": list(ev.conditions)} if ev.conditions else {}),
                 # the placements themselves: a change in how they are drawn (e.g. which offsets
                 # are clear of the hand) invalidates scores as surely as a changed setting
                 "placements": hashlib.sha256(json.dumps(
-                    [[p.seed, *p.offset] for p in self.eval_places + self.rank_places]).encode()).hexdigest()[:16]}
+                    [[p.seed, *p.offset] for c in self.conditions for p in self.eval_places[c] + self.rank_places[c]]
+                ).encode()).hexdigest()[:16]}
 
     def load(self) -> None:
         """Reload the top k (verifying every file), re-score it if the protocol changed, scan."""
@@ -190,29 +198,49 @@ class Ranker:
         return chosen
 
     # ------------------------------------------------------------------ evaluating
-    def _ensure_env(self):
-        if self.env is None:
+    def _ensure_env(self, condition: str | None = None):
+        """The env of a test condition (None: the run's own settings), built once."""
+        if condition not in self.envs:
+            from forcegrasp.conditions import env_kwargs
             from forcegrasp.runtime import make_env
 
-            self.env = make_env(self.config)
-        return self.env
+            self.envs[condition] = make_env(self.config, **(env_kwargs(condition) if condition else {}))
+        return self.envs[condition]
+
+    def _score(self, policy, weights, meta: PolicyMetadata, kind: str, step: int) -> EvalResult:
+        """Score under every test condition; several are mixed by their plain mean, and the result
+        keeps each condition's figures (``conditions``)."""
+        places = self.eval_places if kind == "eval" else self.rank_places
+        parts = {c: self._score_fn(policy, weights, meta, places[c], kind, step, condition=c) for c in self.conditions}
+        if self.conditions == [None]:
+            return parts[None]
+        from forcegrasp.conditions import ConditionScore, mix
+
+        m = mix({c: ConditionScore(r.score, r.success_rate, r.episodes) for c, r in parts.items()})
+        return EvalResult(score=m.score, success_rate=m.success_rate, episodes=m.episodes,
+                          steps=sum(r.steps for r in parts.values()), seconds=sum(r.seconds for r in parts.values()),
+                          returns=[x for r in parts.values() for x in r.returns],
+                          conditions={c: {"score": r.score, "success_rate": r.success_rate, "episodes": r.episodes}
+                                      for c, r in parts.items()})
 
     def _rollouts(self, policy, weights, meta: PolicyMetadata, places: list[Placement], kind: str,
-                  step: int) -> EvalResult:
-        env = self._ensure_env()
+                  step: int, condition: str | None = None) -> EvalResult:
+        env = self._ensure_env(condition)
+        prefix = kind if condition is None else f"{kind}-{condition}"
         log_dir = None
         if self.log_episodes:
             log_dir = self.episodes_dir / f"{step:09d}"
             log_dir.mkdir(parents=True, exist_ok=True)
-            for leftover in log_dir.glob(f".{kind}-*.tmp"):
+            for leftover in log_dir.glob(f".{prefix}-*.tmp"):
                 leftover.unlink(missing_ok=True)
         meta_fields = {"run": self.config.run.name, "checkpoint_step": step, "policy_version":
-                       meta.extra.get("policy_version", 0), "checkpoint": policy_file_name(step)}
+                       meta.extra.get("policy_version", 0), "checkpoint": policy_file_name(step),
+                       "condition": condition or "run"}
 
         def counted(_result) -> None:
             self.counters.episodes += 1
 
-        return evaluate(env, policy, places, log_dir=log_dir, log_prefix=kind, log_metadata=meta_fields,
+        return evaluate(env, policy, places, log_dir=log_dir, log_prefix=prefix, log_metadata=meta_fields,
                         should_stop=self._stop.is_set, on_episode=counted, logger_backend=self.mcap_backend)
 
     def _check(self, data: bytes, source: str):
@@ -251,11 +279,12 @@ class Ranker:
             weights, meta = self._check(data, str(path))
             policy = self._policy(weights, meta)
             t0 = time.perf_counter()
-            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", step)
+            result = self._score(policy, weights, meta, "eval", step)
             self.counters.episode_seconds += time.perf_counter() - t0
             log.info("step %d: score %.2f, success %.0f%% over %d episodes (%.1f s)", step, result.score,
                      100 * result.success_rate, result.episodes, time.perf_counter() - t0)
-            self.top.record(step, result.score, result.success_rate, result.episodes)
+            self.top.record(step, result.score, result.success_rate, result.episodes,
+                            **({"conditions": result.conditions} if result.conditions else {}))
             self.last_result = (step, result)
             member = None
             if self.top.would_enter(result.score, step):
@@ -292,13 +321,14 @@ class Ranker:
     def _rank(self, step: int, weights, meta: PolicyMetadata, policy, result: EvalResult) -> tuple[Member, bytes]:
         """Score a top-k newcomer on the ranking placements; its file carries the scores."""
         t0 = time.perf_counter()
-        rank = self._score_fn(policy, weights, meta, self.rank_places, "rank", step)
+        rank = self._score(policy, weights, meta, "rank", step)
         self.counters.rank_evaluations += 1
         self.counters.episode_seconds += time.perf_counter() - t0
         meta = dataclasses.replace(meta, eval_score=rank.score, extra={**meta.extra, "evaluation": {
             "step": step, "rank_score": rank.score, "rank_success_rate": rank.success_rate,
             "rank_episodes": rank.episodes, "eval_score": result.score, "eval_success_rate": result.success_rate,
-            "eval_episodes": result.episodes, "run": self.config.run.name}})
+            "eval_episodes": result.episodes, "run": self.config.run.name,
+            **({"rank_conditions": rank.conditions, "eval_conditions": result.conditions} if rank.conditions else {})}})
         blob = policy_to_bytes(weights, meta)
         member = Member(
             file=policy_file_name(step), step=step, score=result.score, success_rate=result.success_rate,
@@ -314,7 +344,7 @@ class Ranker:
             weights, meta = load_policy_bytes(data)
             meta.extra = {k: v for k, v in meta.extra.items() if k != "evaluation"}
             policy = self._policy(weights, meta)
-            result = self._score_fn(policy, weights, meta, self.eval_places, "eval", old.step)
+            result = self._score(policy, weights, meta, "eval", old.step)
             member, blob = self._rank(old.step, weights, meta, policy, result)
             self.top.replace(member, blob)
         self.top.commit()

@@ -72,6 +72,8 @@ def make_env(config: Config, **overrides):
         torque_noise_std=e.torque_noise_std,
         max_steps=e.max_steps,
         torque_history=e.torque_history,
+        mass_scale_range=e.mass_scale_range or None,
+        torque_noise_range=e.torque_noise_range or None,
         **e.action_steps(),
     )
     kwargs.update(overrides)
@@ -84,4 +86,13 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
     return task.policy_metadata(config.env.object, config.env.force_feedback, hidden, obs_norm=obs_norm,
                                 training_steps=training_steps, score=score, action_steps=config.env.action_steps(),
                                 torque_history=config.env.torque_history,
-                                extra={"run": config.run.name, **extra})
+                                extra={"run": config.run.name, "training_conditions": training_conditions(config),
+                                       **extra})
+
+
+def training_conditions(config: Config) -> dict:
+    """The physics and sensing a policy was trained under (its file records them, so that an env
+    rebuilt from the file reproduces them): fixed values, and the per-episode ranges when set."""
+    e = config.env
+    return {"mass_scale": e.mass_scale, "torque_noise_std": e.torque_noise_std, "jitter": e.jitter,
+            "mass_scale_range": list(e.mass_scale_range), "torque_noise_range": list(e.torque_noise_range)}

@@ -39,6 +39,7 @@ PRIVILEGED_LAYOUT = (
     ("object_displacement", 3),
     ("fingertip_contacts", 5),
     ("hand_contact", 1),
+    ("domain", 2),  # this episode's ln(mass scale) and torque-noise sigma (N*m): the randomised conditions
 )
 PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
 

@@ -162,24 +162,45 @@ def add_online(run_dir: Path, record: dict) -> None:
 
 
 def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
-    """Score every frozen file of every mark that has no score yet, then save the record."""
+    """Score every frozen file of every mark that has no score yet, then save the record. With test
+    conditions (``record["conditions"]``) each file is tested under each one, on the same placements
+    per condition, and its score is their mean (`forcegrasp.conditions.mix`)."""
+    from forcegrasp.conditions import ConditionScore, env_kwargs, mix
+
     add_online(run_dir, record)
     todo = [(m, kind) for m in record["marks"] for kind in m["files"] if kind not in m["test"]]
     if not todo:
         return
     paths = [RunDir(run_dir).marks / m["files"][kind] for m, kind in todo]
-    scores = test_files(paths, record["episodes"], record["test_seed"], record.get("test_env", {}), workers, log)
+    base = record.get("test_env", {})
+    conditions = record.get("conditions") or []
+    if not conditions:
+        scores = test_files(paths, record["episodes"], record["test_seed"], base, workers, log)
+    else:
+        per = {c: test_files(paths, record["episodes"], record["test_seed"], env_kwargs(c, base), workers,
+                             lambda msg, c=c: log(f"{c}: {msg}")) for c in conditions}
+        scores = []
+        for i in range(len(paths)):
+            parts = {c: per[c][i] for c in conditions}
+            mixed = mix({c: ConditionScore(p["mean_return"], p["success_rate"], p["episodes"]) for c, p in parts.items()})
+            scores.append({"episodes": mixed.episodes, "success_rate": mixed.success_rate,
+                           "mean_return": mixed.score, "conditions": parts})
     for (m, kind), s in zip(todo, scores):
         m["test"][kind] = s
     save_record(run_dir, record)
 
 
 def summary_lines(record: dict) -> list[str]:
-    lines = [f"{record['label']} (seed {record['seed']}): held-out success on {record['episodes']} placements"]
+    under = (f"the mean over conditions {', '.join(record['conditions'])}" if record.get("conditions")
+             else "the run's own env settings")
+    lines = [f"{record['label']} (seed {record['seed']}): held-out success on {record['episodes']} placements, "
+             f"{under}"]
     for m in record["marks"]:
         t = m["test"]
-        cells = [f"{kind} {t[kind]['success_rate']:.0%} (step {m['steps'].get(kind)})" for kind in ("best", "latest")
-                 if kind in t]
+        cells = [f"{kind} {t[kind]['success_rate']:.0%} (step {m['steps'].get(kind)})"
+                 + (" [" + ", ".join(f"{c} {p['success_rate']:.0%}" for c, p in t[kind]["conditions"].items()) + "]"
+                    if "conditions" in t[kind] else "")
+                 for kind in ("best", "latest") if kind in t]
         if "online" in m:
             cells.append(f"online {m['online']['success_rate']:.0%} (actors' last 100 episodes)")
         lines.append(f"  {m['minute']:5.1f} min: " + ", ".join(cells))
@@ -210,6 +231,9 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         "force_feedback": config.env.force_feedback, "minutes": minutes, "mark_every": mark_every,
         "episodes": episodes, "test_seed": test_seed, "elapsed_s": 0.0, "config": config.to_dict(),
         "effective": effective_settings(config), "marks": [],
+        # the test conditions of the marks (forcegrasp.conditions): the evaluator's, so that marks
+        # are scored on what the run selects for
+        "conditions": list(config.evaluator.conditions),
     }
     record["minutes"] = minutes  # a resumed experiment may be given a longer budget
     save_record(run_dir, record)
