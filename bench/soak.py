@@ -33,11 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from forcegrasp.cli.up import GRACE_S, service_commands, stop_all
+from forcegrasp.cli.up import service_commands
 from forcegrasp.config import load_config
 from forcegrasp.protocol import Keys, ProtocolError, decode_stats
 from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import open_service_session
+from forcegrasp.supervisor import GRACE_S, stop_all
 from forcegrasp.transport import QueueSubscriber, close_session, free_tcp_port
 
 RUN = "soak"

@@ -2,15 +2,17 @@
 
 Starts the learner, ``actor.num_actors`` actors and the evaluator from one
 resolved configuration file, prints one progress line every few seconds from the services' own
-stats messages, restarts a service that dies, and on Ctrl-C (or SIGTERM) stops them all:
+stats messages, restarts a service that dies (with backoff; it gives up on one that keeps crashing,
+`forcegrasp.supervisor`), and on Ctrl-C (or SIGTERM, or when its output pipe closes) stops them all:
 SIGINT first so the learner writes its checkpoint, SIGKILL after a grace period.
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
+import os
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -19,9 +21,8 @@ from forcegrasp.config import add_config_arguments, config_from_args
 from forcegrasp.protocol import Keys, ProtocolError, decode_stats
 from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import open_service_session
+from forcegrasp.supervisor import GRACE_S, RestartPolicy, Supervisor
 from forcegrasp.transport import QueueSubscriber, close_session
-
-GRACE_S = 20.0
 
 
 def service_commands(config_path: Path, num_actors: int, evaluator: bool = True, seed: int = 0) -> dict[str, list[str]]:
@@ -65,53 +66,60 @@ def progress_line(stats: dict) -> str:
             + "  ".join(actors))
 
 
-def stop_all(procs: dict[str, subprocess.Popen], log=print, grace_s: float = GRACE_S) -> None:
-    """SIGINT to every live service, then SIGKILL whatever has not exited after ``grace_s``."""
-    for p in procs.values():
-        if p.poll() is None:
-            p.send_signal(signal.SIGINT)
-    deadline = time.monotonic() + grace_s
-    for name, p in procs.items():
-        try:
-            p.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            log(f"{name} did not stop in {grace_s:.0f} s: SIGKILL")
-            p.kill()
-            p.wait()
+def drop_closed_output() -> None:
+    """Point a closed stdout or stderr at /dev/null, so that later writes and the interpreter's
+    flush at exit do not fail again."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except BrokenPipeError:
+                os.dup2(null, stream.fileno())
+            except (OSError, ValueError):
+                pass
+    finally:
+        os.close(null)
 
 
-def up(config, config_path: Path, stop_after: float | None = None, log=print, evaluator: bool = True) -> int:
+def up(config, config_path: Path, stop_after: float | None = None, log=print, evaluator: bool = True,
+       policy: RestartPolicy = RestartPolicy()) -> int:
+    """Runs the cluster; the exit status is 0 after ``stop_after`` seconds or a signal, 1 when the
+    output pipe closed or a service kept crashing."""
     files = RunDir.of(config)
     files.root.mkdir(parents=True, exist_ok=True)
     config_path.write_text(config.to_toml())
     logs = files.logs
     logs.mkdir(exist_ok=True)
-    commands = service_commands(config_path, config.actor.num_actors, evaluator, config.run.seed)
-    procs: dict[str, subprocess.Popen] = {}
+    state = {"stop": False, "status": 0}
 
-    def start(name: str) -> None:
-        out = open(files.log(name), "ab")
-        procs[name] = subprocess.Popen(commands[name], stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
-
-    stopping = {"flag": False}
+    def say(message: str) -> None:  # `forcegrasp up | head`: the services must still be stopped
+        try:
+            log(message)
+        except BrokenPipeError:
+            state.update(stop=True, status=1)
+            drop_closed_output()
 
     def on_signal(signum, frame):
-        stopping["flag"] = True
+        state["stop"] = True
 
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
+    commands = service_commands(config_path, config.actor.num_actors, evaluator, config.run.seed)
+    services = Supervisor(commands, logs, policy, say)
     session = stats_sub = None
     try:
         for name in commands:
-            start(name)
+            services.start(name)
             if name == "learner":
                 time.sleep(0.5)  # actors connect faster when the learner already listens
-        log(f"started {', '.join(f'{n} (pid {p.pid})' for n, p in procs.items())}; logs in {logs}; Ctrl-C stops")
+        say(f"started {', '.join(f'{n} (pid {p.pid})' for n, p in services.procs.items())}; logs in {logs}; "
+            "Ctrl-C stops")
         session = open_service_session(config, "monitor")
         stats_sub = QueueSubscriber(session, Keys(config.run.name).all_stats, maxsize=256, put_timeout=0.0)
         latest: dict[str, dict] = {}
         t0 = last_line = time.monotonic()
-        while not stopping["flag"] and (stop_after is None or time.monotonic() - t0 < stop_after):
+        while not state["stop"] and (stop_after is None or time.monotonic() - t0 < stop_after):
             payload = stats_sub.get(timeout=0.2)
             if payload is not None:
                 try:
@@ -119,21 +127,22 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
                     latest[s.service if s.service in ("learner", "evaluator") else s.id] = s.values
                 except ProtocolError:
                     pass
-            for name, p in list(procs.items()):
-                if p.poll() is not None:
-                    log(f"{name} exited with {p.returncode}; restarting it (see {files.log(name)})")
-                    start(name)
+            failure = services.check()
+            if failure is not None:
+                say(failure)
+                state["status"] = 1
+                break
             if time.monotonic() - last_line > 3.0:
-                log(progress_line(latest))
+                say(progress_line(latest))
                 last_line = time.monotonic()
     finally:
         if stats_sub is not None:
             stats_sub.close()
         close_session(session)
-        log("stopping: SIGINT to every service, the learner writes its checkpoint")
-        stop_all(procs, log)
-    log("all services stopped")
-    return 0
+        say("stopping: SIGINT to every service, the learner writes its checkpoint")
+        services.stop(GRACE_S)
+    say("all services stopped")
+    return state["status"]
 
 
 def main(argv=None) -> int:
@@ -145,4 +154,5 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     config = config_from_args(args)
     path = RunDir.of(config).cluster_config
-    return up(config, path, args.stop_after, evaluator=not args.no_evaluator)
+    log = functools.partial(print, flush=True)  # lines reach a pipe at once; a closed one shows at once
+    return up(config, path, args.stop_after, log=log, evaluator=not args.no_evaluator)
