@@ -286,11 +286,12 @@ def compose_client() -> list[str] | None:
     return None
 
 
+@pytest.mark.docker
 def test_docker_compose_validates_the_file():
-    """The compose client validates the file without an engine (when one is installed)."""
+    """The compose client validates the file without an engine: with the Docker tests
+    (``-m docker``, after ../shared/docker/engine.sh), where a client is installed."""
     client = compose_client()
-    if client is None:
-        pytest.skip("no docker compose client here: the checks above are the validation")
+    assert client is not None, "no docker compose client: install one (docs/docker.md)"
     proc = subprocess.run(client + ["-f", str(COMPOSE), "config", "-q"], capture_output=True,
                           text=True, cwd=REPO, env={k: v for k, v in os.environ.items()
                                                     if not k.startswith(ENV_PREFIX)})

@@ -2,6 +2,7 @@
 
 import os
 import sys
+from importlib import resources
 from pathlib import Path
 
 # Offscreen rendering must pick its GL backend before mujoco is first imported anywhere.
@@ -9,8 +10,9 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 __version__ = "0.1.0"
 
-#: Asset folder (objects, grasp labels): the repository's, or FORCEGRASP_ASSETS for a user's own set.
-ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or Path(__file__).resolve().parents[2] / "assets")
+#: Asset folder (objects, grasp labels, shipped policies): the package's own (the repository's assets/,
+#: package data in a wheel), or FORCEGRASP_ASSETS for a user's own set.
+ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or str(resources.files(__name__) / "assets"))
 
 
 # Gymnasium ids (FunctionalGrasp-<Object>-v0) are registered by `forcegrasp.env` when it is

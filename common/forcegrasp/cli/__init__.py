@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
 
 def cmd_label(args) -> int:
@@ -59,7 +60,8 @@ def _save_grasp_picture(name: str, label=None):
     from forcegrasp import ASSETS_DIR
     from forcegrasp.render import grasp_picture, save_png
 
-    path = ASSETS_DIR.parent / "docs" / "grasps" / f"{name}.png"
+    docs = ASSETS_DIR.resolve().parent / "docs"  # a checkout's docs/; an installed package writes here
+    path = (docs if docs.is_dir() else Path.cwd()) / "grasps" / f"{name}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     save_png(path, grasp_picture(name, label))
     return path
@@ -148,6 +150,7 @@ TOOLS = {
     "eval": ("forcegrasp.cli.policy_eval", "test a policy on held-out placements, sweeping mass, torque noise..."),
     "ship": ("forcegrasp.cli.ship", "copy an experiment's picked policy into assets/policies/ with its record"),
     "report": ("forcegrasp.cli.report", "the paper's experiments on the shipped policies: docs/results.md and figures"),
+    "export": ("forcegrasp.cli.export", "export a policy file to ONNX: forcegrasp export FILE --onnx OUT.onnx"),
 }
 
 

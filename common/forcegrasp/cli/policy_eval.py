@@ -24,7 +24,9 @@ SWEEPABLE = ("mass_scale", "torque_noise_std", "jitter", "object_tolerance", "pa
 
 
 def resolve_policy(path: Path) -> Path:
-    """A policy file as given, or a run directory's best checkpoint (its evaluator's top k)."""
+    """A policy file as given, a run directory's best checkpoint (its evaluator's top k), or the name
+    of a shipped policy (``mug-ff-s0``: assets/policies/, installed with the package)."""
+    from forcegrasp import ASSETS_DIR
     from forcegrasp.rundir import RunDir
 
     if path.is_file():
@@ -32,7 +34,11 @@ def resolve_policy(path: Path) -> Path:
     best = RunDir(path).best_policy() if path.is_dir() else None
     if best is not None:
         return best
-    raise FileNotFoundError(f"{path}: neither a policy file nor a run directory with an evaluated best checkpoint")
+    shipped = ASSETS_DIR / "policies" / f"{path.name}.safetensors"
+    if len(path.parts) == 1 and shipped.is_file():
+        return shipped
+    raise FileNotFoundError(f"{path}: neither a policy file, a run directory with an evaluated best checkpoint, nor "
+                            f"a shipped policy ({', '.join(sorted(p.stem for p in (ASSETS_DIR / 'policies').glob('*.safetensors')))})")
 
 
 def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
@@ -115,7 +121,8 @@ def plot_rows(rows: list[dict], out: Path, title: str) -> Path:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="forcegrasp eval", description=__doc__.splitlines()[0],
                                      epilog="e.g. forcegrasp eval runs/mug --sweep mass_scale=5,1,0.5 --env object_tolerance=0.03")
-    parser.add_argument("policy", type=Path, help="policy file, or a run directory (its evaluator's best checkpoint)")
+    parser.add_argument("policy", type=Path, help="policy file, a run directory (its evaluator's best checkpoint), "
+                        "or a shipped policy's name (e.g. mug-ff-s0)")
     parser.add_argument("--episodes", type=int, default=100, help="placements per setting (default 100)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the test placements (default 0)")
     parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
