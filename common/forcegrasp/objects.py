@@ -24,6 +24,11 @@ surface under the object)::
         "palm_at": [x, y, z],              # object-frame point the palm centre starts at
         "fingers": {"FFJ2": 0.6, ...},     # optional joint start values
         "palm_contact": false              # optional: also pull the palm onto the object
+      },
+      "view": {                            # optional: the camera of pictures and videos
+        "azimuth": 225, "elevation": -25,  # degrees (MuJoCo's free camera: azimuth 0 looks along
+        "distance": 0.38,                  # +x, 90 along +y; negative elevation looks down), m
+        "lookat": [0.05, -0.03, 0.09]      # the point looked at, from the object's origin (m)
       }
     }
 """
@@ -94,6 +99,23 @@ class GraspHint:
 
 
 @dataclass(frozen=True)
+class View:
+    """Where pictures and videos of an object are taken from (a MuJoCo free camera): it looks at
+    the object's origin plus ``lookat`` (m, world axes), from ``distance`` m away, turned
+    ``azimuth`` degrees about z (0: looking along +x, 90: along +y) and ``elevation`` degrees
+    (negative: from above). Each object file chooses one that shows its functional contact."""
+
+    azimuth: float = 200.0
+    elevation: float = -25.0
+    distance: float = 0.55
+    lookat: tuple[float, float, float] = (0.0, 0.0, 0.08)
+
+
+#: bounds of the ``view`` fields: (low, high), inclusive
+VIEW_BOUNDS = {"azimuth": (-360.0, 360.0), "elevation": (-90.0, 90.0), "distance": (0.05, 5.0), "lookat": (-1.0, 1.0)}
+
+
+@dataclass(frozen=True)
 class ObjectSpec:
     name: str
     description: str
@@ -103,6 +125,7 @@ class ObjectSpec:
     grasp_hint: GraspHint
     friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
     path: Path | None = None
+    view: View = View()
 
 
 def objects_dir() -> Path:
@@ -145,6 +168,36 @@ def _floats(value, n: int | None, what: str, source: str) -> tuple[float, ...]:
         want = f"{n} finite numbers" if n is not None else "a list of finite numbers"
         raise ObjectFileError(f"{source}: field {what!r} must be {want}, got {value!r}")
     return tuple(float(v) for v in arr)
+
+
+def parse_view(raw, source: str = "<object>") -> View:
+    """The optional ``view`` field: a map with azimuth, elevation, distance (numbers) and lookat
+    ([x, y, z]); fields left out keep `View`'s defaults; anything else names the field."""
+    if raw is None:
+        return View()
+    if not isinstance(raw, dict):
+        raise ObjectFileError(f"{source}: field 'view' must be a map with {', '.join(VIEW_BOUNDS)}, got {raw!r}")
+    unknown = sorted(set(raw) - set(VIEW_BOUNDS))
+    if unknown:
+        raise ObjectFileError(f"{source}: field 'view' has unknown keys {unknown}; allowed: {', '.join(VIEW_BOUNDS)}")
+    values = {}
+    for key, (lo, hi) in VIEW_BOUNDS.items():
+        if key not in raw:
+            continue
+        value = raw[key]
+        if key == "lookat":
+            got = _floats(value, 3, "view.lookat", source)
+            if not all(lo <= v <= hi for v in got):
+                raise ObjectFileError(f"{source}: field 'view.lookat' must be 3 numbers in [{lo:g}, {hi:g}] m, "
+                                      f"got {value!r}")
+        else:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not (lo <= value <= hi):
+                unit = "m" if key == "distance" else "degrees"
+                raise ObjectFileError(f"{source}: field 'view.{key}' must be a number in [{lo:g}, {hi:g}] {unit}, "
+                                      f"got {value!r}")
+            got = float(value)
+        values[key] = got
+    return View(**values)
 
 
 def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) -> ObjectSpec:
@@ -242,4 +295,5 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
         grasp_hint=hint,
         friction=friction,
         path=path,
+        view=parse_view(raw.get("view"), source),
     )

@@ -24,6 +24,13 @@ def look_at(lookat, distance: float = 0.45, azimuth: float = 135.0, elevation: f
     return cam
 
 
+def object_camera(view, object_position) -> mujoco.MjvCamera:
+    """The camera of an object's ``view`` (`forcegrasp.objects.View`, from its object file) with
+    the object's origin at ``object_position`` (world, m): pictures and videos of that object."""
+    target = np.asarray(object_position, dtype=float) + np.asarray(view.lookat, dtype=float)
+    return look_at(target, view.distance, view.azimuth, view.elevation)
+
+
 def render(renderer: mujoco.Renderer, d: mujoco.MjData, cam: mujoco.MjvCamera) -> np.ndarray:
     renderer.update_scene(d, cam)
     return renderer.render()
@@ -36,13 +43,15 @@ def save_png(path, image: np.ndarray) -> None:
 
 
 def grasp_picture(object_name: str, label=None, height: int = 300, width: int = 400) -> np.ndarray:
-    """Pre-grasp and goal grasp side by side, each from the approach side and from above."""
+    """Pre-grasp and goal grasp side by side, each from the object's view (its file's ``view``, which
+    shows the functional contact), from the approach side and from above."""
     from forcegrasp.labels import load_label
     from forcegrasp.objects import load_object
     from forcegrasp.scene import SceneIndex, build_model, resting_height
 
     label = label if label is not None else load_label(object_name)
-    m = build_model(load_object(object_name))
+    obj = load_object(object_name)
+    m = build_model(obj)
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)
     renderer = make_renderer(m, height, width)
@@ -52,7 +61,8 @@ def grasp_picture(object_name: str, label=None, height: int = 300, width: int = 
         d.qpos[ix.object_qpos + 2] = resting_height(m)
         d.qpos[ix.object_qpos + 3] = 1.0
         mujoco.mj_forward(m, d)
-        views = [look_at([0, 0, 0.09], 0.5, az, el) for az, el in ((200, -20), (135, -35), (270, -70))]
+        views = [object_camera(obj.view, d.xpos[ix.object_body])]
+        views += [look_at([0, 0, 0.09], 0.5, az, el) for az, el in ((135, -35), (270, -70))]
         rows.append(np.concatenate([render(renderer, d, cam) for cam in views], axis=1))
     renderer.close()
     return np.concatenate(rows, axis=0)

@@ -9,6 +9,10 @@ object and the force-feedback setting come from the policy's metadata. The place
 ``"test"`` stream, drawn like the evaluator's but never used to select a checkpoint, so the
 figures are not inflated by the selection. Every sweep value sees the same placements (unless
 the jitter itself is swept). The policy acts deterministically (tanh of the mean).
+
+``--video OUT.gif`` (or ``.mp4``) renders instead of scoring: one episode on the first held-out
+placement, seen by the object's camera; ``--video DIR`` writes ``DIR/test-000.gif``... for the
+first ``--video-count`` placements (the same placements, in the same order, as the scores).
 """
 
 from __future__ import annotations
@@ -56,24 +60,17 @@ def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
 def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
                 log=print, log_dir: Path | None = None) -> list[dict]:
     """One row per sweep value: success rate, mean return and failure counts over the placements."""
-    from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.evaluation import placements, run_episode
-    from forcegrasp.policy import Policy
 
-    policy = Policy.load(policy_path)
+    policy = _load_policy(policy_path)
     meta = policy.metadata
-    if not meta.object_name:
-        raise ValueError(f"{policy_path}: the policy's metadata names no object")
     key, values = sweep if sweep else (None, [None])
     rows = []
     for value in values:
         kwargs = dict(fixed)
         if key is not None:
             kwargs[key] = value
-        env = FunctionalGraspEnv.for_policy(meta, **kwargs)
-        if env.observation_space.shape[0] != meta.obs_dim:
-            raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
-                             f"{env.observation_space.shape[0]}")
+        env = _env_for(policy, policy_path, kwargs)
         t0 = time.perf_counter()
         folder = None if log_dir is None else log_dir / (f"{key}-{value:g}" if key else "as-given")
         results = [run_episode(env, policy, p, _logger(folder, env, p, meta, policy_path))
@@ -89,6 +86,63 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
         log(f"{key or 'settings'} = {value if key else kwargs or 'defaults'}: success {row['success_rate']:.0%}, "
             f"return {row['mean_return']:.1f}, failures {row['failures']} ({row['seconds']} s)")
     return rows
+
+
+def _load_policy(policy_path: Path):
+    from forcegrasp.policy import Policy
+
+    policy = Policy.load(policy_path)
+    if not policy.metadata.object_name:
+        raise ValueError(f"{policy_path}: the policy's metadata names no object")
+    return policy
+
+
+def _env_for(policy, policy_path: Path, kwargs: dict):
+    """The env ``policy`` was trained for, with the test settings ``kwargs``."""
+    from forcegrasp.env import FunctionalGraspEnv
+
+    meta = policy.metadata
+    env = FunctionalGraspEnv.for_policy(meta, **kwargs)
+    if env.observation_space.shape[0] != meta.obs_dim:
+        raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
+                         f"{env.observation_space.shape[0]}")
+    return env
+
+
+def video_targets(out: Path, count: int, fmt: str) -> list[Path]:
+    """``[out]`` for a .gif or .mp4 file name; ``out/test-000.<fmt>``... for a directory (an existing
+    one, or a name without a suffix)."""
+    from forcegrasp.video import VIDEO_SUFFIXES
+
+    if out.is_dir() or not out.suffix:
+        if count < 1:
+            raise ValueError("--video-count must be at least 1")
+        return [out / f"test-{i:03d}.{fmt}" for i in range(count)]
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"--video {out}: use a .gif or .mp4 file name, or a directory")
+    return [out]
+
+
+def render_videos(policy_path: Path, targets: list[Path], seed: int, fixed: dict, log=print) -> list[dict]:
+    """One deterministic episode per target on the first held-out ("test") placements, in order."""
+    from forcegrasp.evaluation import placements
+    from forcegrasp.video import episode_video
+
+    policy = _load_policy(policy_path)
+    env = _env_for(policy, policy_path, dict(fixed))
+    done = []
+    try:
+        for place, target in zip(placements(seed, len(targets), env.jitter, "test", clear=env.is_clear), targets):
+            info, r = episode_video(env, policy, place, target)
+            dx, dy = place.offset
+            log(f"test placement {place.index} (offset {100 * dx:+.2f}, {100 * dy:+.2f} cm): "
+                f"{'success' if r.success else f'failure ({r.failure})'}, return {r.ret:.1f}, {r.length} steps: "
+                f"wrote {target} ({info.frames} frames, {info.width}x{info.height}, "
+                f"{target.stat().st_size / 1e3:.0f} kB)")
+            done.append({"placement": place.index, "path": str(target), "success": r.success, "return": r.ret})
+    finally:
+        env.close()
+    return done
 
 
 def _logger(folder: Path | None, env, placement, meta, policy_path: Path):
@@ -120,7 +174,8 @@ def plot_rows(rows: list[dict], out: Path, title: str) -> Path:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="forcegrasp eval", description=__doc__.splitlines()[0],
-                                     epilog="e.g. forcegrasp eval runs/mug --sweep mass_scale=5,1,0.5 --env object_tolerance=0.03")
+                                     epilog="e.g. forcegrasp eval runs/mug --sweep mass_scale=5,1,0.5 --env object_tolerance=0.03; "
+                                     "forcegrasp eval mug-ff-s0 --video mug.gif")
     parser.add_argument("policy", type=Path, help="policy file, a run directory (its evaluator's best checkpoint), "
                         "or a shipped policy's name (e.g. mug-ff-s0)")
     parser.add_argument("--episodes", type=int, default=100, help="placements per setting (default 100)")
@@ -131,6 +186,14 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, help="write the rows as JSON")
     parser.add_argument("--plot", type=Path, help="PNG of success rate against the swept setting")
     parser.add_argument("--log-dir", type=Path, help="write each episode as an MCAP log here (forcegrasp replay renders it)")
+    parser.add_argument("--video", type=Path, metavar="OUT.gif|OUT.mp4|DIR",
+                        help="render instead of scoring: a .gif (320x240) or .mp4 (640x480), at a quarter speed, "
+                        "of the episode on the first held-out placement, or in a directory test-000.gif... for "
+                        "the first --video-count placements; with the --env settings, the object's camera")
+    parser.add_argument("--video-count", type=int, default=4,
+                        help="videos written into a --video directory (default 4)")
+    parser.add_argument("--video-format", choices=("gif", "mp4"), default="gif",
+                        help="format of the videos written into a --video directory (default gif)")
     args = parser.parse_args(argv)
     try:
         fixed = dict((k, v[0]) for k, v in (parse_setting(s, many=False) for s in args.env))
@@ -139,9 +202,20 @@ def main(argv=None) -> int:
             raise ValueError("--episodes must be at least 1")
         if args.plot and not sweep:
             raise ValueError("--plot needs --sweep")
+        if args.video and (sweep or args.plot or args.json or args.log_dir):
+            raise ValueError("--video renders episodes and scores none: "
+                             "leave out --sweep, --plot, --json and --log-dir")
+        targets = video_targets(args.video, args.video_count, args.video_format) if args.video else None
         policy_path = resolve_policy(args.policy)
     except (ValueError, FileNotFoundError) as exc:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
+    if targets is not None:
+        print(f"policy {policy_path}: rendering {len(targets)} held-out episode(s)", flush=True)
+        try:
+            render_videos(policy_path, targets, args.seed, fixed, log=lambda line: print(line, flush=True))
+        except ValueError as exc:
+            parser.exit(2, f"forcegrasp eval: {exc}\n")
+        return 0
     print(f"policy {policy_path}, {args.episodes} test placements per setting", flush=True)
     try:
         rows = evaluate_settings(policy_path, args.episodes, args.seed, fixed, sweep,

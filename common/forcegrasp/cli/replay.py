@@ -3,19 +3,21 @@
 The scene is rebuilt from the log's metadata (object and mass scale), then every logged step is
 shown by setting the 30 hand joints (``/joint_states`` positions) and the object's free joint
 (``object`` frame of ``/tf``) and running ``mj_forward`` (no simulation: the picture is the log).
+The camera is the object's own (the ``view`` of its object file, looking at where the object
+started), placed so the functional contact is in view.
 
-Outputs, by the ``--out`` suffix:
+Outputs, by the ``--out`` suffix (or ``--video``, which takes only the video formats):
 
-- ``.png`` (default, always possible): a grid of ``--frames`` evenly spaced steps, each labelled;
-- ``.gif``: every ``--stride``-th step as an animation (Pillow, always possible);
-- ``.mp4``: a video, when imageio with an ffmpeg backend is installed; otherwise a PNG strip is
-  written next to it and the command says so.
+- ``.png`` (default): a grid of ``--frames`` evenly spaced steps, each labelled;
+- ``.gif``: every ``--stride``-th step (default 1; 320x240) as an animation;
+- ``.mp4``: every ``--stride``-th step (default 1; 640x480) as an H.264 video (imageio-ffmpeg).
+
+Videos play at ``--speed`` times the logged time (default 0.25: a grasp takes under a second).
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 from pathlib import Path
 
@@ -26,21 +28,8 @@ class ReplayError(ValueError):
     """The episode file cannot be replayed (not an episode log, unknown object...)."""
 
 
-def _ffmpeg_writer_available() -> bool:
-    try:
-        import imageio.v2  # noqa: F401
-    except ImportError:
-        return False
-    try:
-        import imageio_ffmpeg  # noqa: F401
-
-        return True
-    except ImportError:
-        return shutil.which("ffmpeg") is not None
-
-
 def load_scene(log):
-    """(model, data, SceneIndex) for the logged object, or ReplayError."""
+    """(model, data, SceneIndex, ObjectSpec) for the logged object, or ReplayError."""
     import mujoco
 
     from forcegrasp.objects import ObjectFileError, load_object
@@ -54,19 +43,20 @@ def load_scene(log):
     except ObjectFileError as exc:
         raise ReplayError(f"{log.path}: logged object cannot be rebuilt: {exc}") from None
     m = build_model(obj, float(meta.get("mass_scale", "1.0")))
-    return m, mujoco.MjData(m), SceneIndex.of(m)
+    return m, mujoco.MjData(m), SceneIndex.of(m), obj
 
 
 def render_frames(log, steps: list[int], height: int = 240, width: int = 320) -> list[np.ndarray]:
-    """RGB frames of the given step indices (0 = the reset state)."""
+    """RGB frames of the given step indices (0 = the reset state), seen by the object's camera."""
     import mujoco
 
-    from forcegrasp.render import look_at, make_renderer, render
+    from forcegrasp.render import make_renderer, object_camera, render
 
-    m, d, ix = load_scene(log)
+    m, d, ix, spec = load_scene(log)
     qpos, obj = log.qpos(), log.object_poses()
     if len(qpos) != len(obj):
         raise ReplayError(f"{log.path}: {len(qpos)} joint-state messages but {len(obj)} transforms")
+    camera = object_camera(spec.view, obj[0, :3])  # fixed on where the object started
     renderer = make_renderer(m, height, width)
     frames = []
     try:
@@ -74,8 +64,7 @@ def render_frames(log, steps: list[int], height: int = 240, width: int = 320) ->
             d.qpos[ix.all_qpos] = qpos[t]
             d.qpos[ix.object_qpos: ix.object_qpos + 7] = obj[t]
             mujoco.mj_forward(m, d)
-            target = obj[t, :3] + np.array([0.0, 0.0, 0.08])
-            frames.append(render(renderer, d, look_at(target, 0.55, 200.0, -25.0)).copy())
+            frames.append(render(renderer, d, camera).copy())
     finally:
         renderer.close()
     return frames
@@ -102,13 +91,25 @@ def strip(frames: list[np.ndarray], labels: list[str], columns: int = 4) -> np.n
     return grid
 
 
-def replay(path: str | Path, out: str | Path | None = None, frames: int = 8, stride: int = 1, fps: int | None = None,
-           height: int = 240, width: int = 320, log=print) -> Path:
+def replay(path: str | Path, out: str | Path | None = None, frames: int = 8, stride: int | None = None,
+           speed: float | None = None, height: int | None = None, width: int | None = None) -> Path:
     """Render ``path`` to ``out`` (see the module docstring); returns the file written."""
     from forcegrasp.mcap_log import read_episode
     from forcegrasp.render import save_png
+    from forcegrasp.video import SPEED, VIDEO_SUFFIXES, VideoError, output_size, write_video
 
     path = Path(path)
+    out = Path(out) if out is not None else path.with_suffix(".png")
+    suffix = out.suffix.lower()
+    if suffix not in (".png", *VIDEO_SUFFIXES):
+        raise ReplayError(f"--out {out}: use a .png (image strip), .gif or .mp4 file name")
+    try:
+        width, height, stride = output_size(suffix, width, height, stride)
+    except VideoError as exc:
+        raise ReplayError(str(exc)) from None
+    speed = SPEED if speed is None else speed
+    if not np.isfinite(speed) or speed <= 0:
+        raise ReplayError(f"--speed must be positive, got {speed!r}")
     try:
         episode = read_episode(path, topics=["/joint_states", "/tf", "/reward", "/outcome"])
     except FileNotFoundError:
@@ -117,29 +118,15 @@ def replay(path: str | Path, out: str | Path | None = None, frames: int = 8, str
         raise ReplayError(f"{path}: not a readable MCAP file ({type(exc).__name__}: {exc})") from None
     if not episode.messages.get("/joint_states") or not episode.messages.get("/tf"):
         raise ReplayError(f"{path}: no /joint_states or /tf messages: not a ForceGrasp episode log")
-    out = Path(out) if out is not None else path.with_suffix(".png")
     n = len(episode.messages["/joint_states"])
     rewards = episode.messages.get("/reward", [])
-    fps = fps or max(1, round(1e9 / _step_ns(episode)))
-    suffix = out.suffix.lower()
-    if suffix == ".mp4" and not _ffmpeg_writer_available():
-        log("no ffmpeg backend for imageio here (pip install imageio-ffmpeg): writing an image strip instead")
-        out, suffix = out.with_suffix(".png"), ".png"
-    if suffix in (".mp4", ".gif"):
-        steps = list(range(0, n, max(1, stride)))
-        images = render_frames(episode, steps, height, width)
-        if suffix == ".gif":
-            from PIL import Image
-
-            pil = [Image.fromarray(f) for f in images]
-            pil[0].save(out, save_all=True, append_images=pil[1:], duration=int(1000 * max(1, stride) / fps), loop=0)
-        else:
-            import imageio.v2 as imageio
-
-            imageio.mimwrite(out, images, fps=fps / max(1, stride))
+    fps = 1e9 / _step_ns(episode) * speed
+    if suffix in VIDEO_SUFFIXES:
+        steps = list(range(0, n, stride))
+        if steps[-1] != n - 1:
+            steps.append(n - 1)  # the final pose is always shown
+        write_video(out, render_frames(episode, steps, height, width), fps / stride)
         return out
-    if suffix != ".png":
-        raise ReplayError(f"--out {out}: use a .png (image strip), .gif or .mp4 file name")
     steps = sorted({int(round(x)) for x in np.linspace(0, n - 1, max(1, min(frames, n)))})
     images = render_frames(episode, steps, height, width)
     labels = []
@@ -156,17 +143,30 @@ def _step_ns(episode) -> int:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="forcegrasp replay", description=__doc__.splitlines()[0])
-    parser.add_argument("episode", help="an episode .mcap written by the evaluator")
-    parser.add_argument("--out", default=None, help="strip.png (default: next to the episode), anim.gif or video.mp4")
+    parser = argparse.ArgumentParser(prog="forcegrasp replay", description=__doc__.splitlines()[0],
+                                     epilog="e.g. forcegrasp replay test-000.mcap --video grasp.gif")
+    parser.add_argument("episode", help="an episode .mcap written by the evaluator or `forcegrasp eval --log-dir`")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--out", default=None, help="strip.png (default: next to the episode), anim.gif or video.mp4")
+    where.add_argument("--video", default=None, metavar="OUT.{gif,mp4}", help="write the episode as a GIF or an MP4")
     parser.add_argument("--frames", type=int, default=8, help="frames in a PNG strip (default 8)")
-    parser.add_argument("--stride", type=int, default=1, help="render every n-th step in a video or GIF")
-    parser.add_argument("--width", type=int, default=320)
-    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--stride", type=int, default=None,
+                        help="render every n-th step in a video (default 1: every step)")
+    parser.add_argument("--speed", type=float, default=None,
+                        help="video playback speed against the logged time (default 0.25)")
+    parser.add_argument("--width", type=int, default=None, help="frame width (default: 320; 640 in an MP4)")
+    parser.add_argument("--height", type=int, default=None, help="frame height (default: 240; 480 in an MP4)")
     args = parser.parse_args(argv)
     try:
-        out = replay(args.episode, args.out, frames=args.frames, stride=args.stride, height=args.height,
-                     width=args.width)
+        if args.video is not None:
+            from forcegrasp.video import VideoError, video_suffix
+
+            try:
+                video_suffix(args.video)
+            except VideoError as exc:
+                raise ReplayError(f"--video {exc}") from None
+        out = replay(args.episode, args.video or args.out, frames=args.frames, stride=args.stride,
+                     speed=args.speed, height=args.height, width=args.width)
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

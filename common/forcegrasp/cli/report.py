@@ -4,8 +4,8 @@ Needs nothing but ``assets/policies/`` (no run folder): every policy there is te
 held-out ``"test"`` placements (success with 95 % intervals, the adaptation map), at 1x and 0.5x
 mass with the 0.03 m tolerance, under joint-torque noise from 0 to 1 N·m, and on the paper's
 three Fig. 3 placements (palm and object x against time); one successful grasp per object is
-rendered as a strip. ``--quick`` runs reduced trial counts (CI); the default is the full protocol.
-Writes ``OUT/results.md``, ``OUT/results.json`` and ``OUT/results/*.png``.
+rendered as a GIF. ``--quick`` runs reduced trial counts (CI); the default is the full protocol.
+Writes ``OUT/results.md``, ``OUT/results.json``, ``OUT/results/*.png`` and ``OUT/results/grasp-*.gif``.
 """
 
 from __future__ import annotations
@@ -149,41 +149,24 @@ def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> 
     return _save(fig, out, dpi=100)
 
 
-def grasp_strip(shipped, out: Path, frames: int = 5) -> Path | None:
-    """Frames of the first successful held-out episode of `shipped`, left to right, each seen from
-    the approach side (top row) and from the front (bottom row), as in docs/grasps/."""
-    import numpy as np
-
+def grasp_video(shipped, out: Path, tries: int = 10) -> Path | None:
+    """The first successful held-out episode of `shipped` among the first `tries` test placements
+    (seed 0) as a GIF (`forcegrasp.video`: the object's camera, a quarter speed): what
+    ``forcegrasp eval POLICY --video out.gif`` writes when the first placement succeeds."""
     from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.evaluation import placements
     from forcegrasp.policy import Policy
-    from forcegrasp.render import look_at, make_renderer, render, save_png
+    from forcegrasp.video import SPEED, output_size, record_episode, step_fps, write_video
 
     policy = Policy.load(shipped.path)
     env = FunctionalGraspEnv.for_policy(policy.metadata)
-    renderer = make_renderer(env.model, 240, 320)
-
-    def shot():
-        target = env.object_position() + np.array([0.0, 0.0, 0.08])
-        return np.concatenate([render(renderer, env.data, look_at(target, 0.5, az, el))
-                               for az, el in ((200, -20), (135, -35))], axis=0)
-
-    try:
-        for p in placements(0, 10, env.jitter, "test", clear=env.is_clear):
-            obs, _ = env.reset(seed=p.seed, options={"offset": p.offset})
-            images = [shot()]
-            while True:
-                obs, _, terminated, truncated, info = env.step(policy(obs))
-                images.append(shot())
-                if terminated or truncated:
-                    break
-            if info["success"]:
-                pick = np.linspace(0, len(images) - 1, frames).round().astype(int)
-                save_png(out, np.concatenate([images[i] for i in pick], axis=1))
-                return out
-        return None
-    finally:
-        renderer.close()
+    width, height, stride = output_size(".gif", None, None, None)
+    for p in placements(0, tries, env.jitter, "test", clear=env.is_clear):
+        frames, result = record_episode(env, policy, p, width, height, stride)
+        if result.success:
+            write_video(out, frames, step_fps(env) * SPEED / stride)
+            return out
+    return None
 
 
 # ---------------------------------------------------------------------------------- the page
@@ -243,10 +226,12 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
     for key, caption in captions.items():
         if key in figures:
             lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
-    strips = [p for k, p in figures.items() if k.startswith("strip-")]
-    if strips:
-        lines += ["**One successful held-out grasp per object**, start to end:", ""]
-        lines += [f"![{p.stem}]({rel(p)})" for p in strips] + [""]
+    videos = [p for k, p in figures.items() if k.startswith("grasp-")]
+    if videos:
+        lines += ["**One successful held-out grasp per object** (its first force-feedback policy), pre-grasp to "
+                  "goal at a quarter speed, seen by the object's camera (`forcegrasp eval POLICY --video out.gif` "
+                  "renders one):", ""]
+        lines += [f"![{p.stem}]({rel(p)})" for p in videos] + [""]
     page = out / "results.md" if out.is_dir() else out
     page.write_text("\n".join(lines))
     return page
@@ -258,7 +243,8 @@ def main(argv=None) -> int:
     parser.add_argument("--policies", type=Path, default=POLICIES_DIR, help=f"folder of shipped policies ({POLICIES_DIR})")
     parser.add_argument("--out", type=Path, default=POLICIES_DIR.parent.parent / "docs", help="folder for results.md")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
-    parser.add_argument("--no-strips", action="store_true", help="skip the rendered grasp strips")
+    parser.add_argument("--no-videos", "--no-strips", dest="no_videos", action="store_true",
+                        help="skip the rendered grasp GIFs")
     args = parser.parse_args(argv)
     policies = shipped_policies(args.policies)
     if not policies:
@@ -279,12 +265,12 @@ def main(argv=None) -> int:
         "fig8": fig_noise(summary, objects, figs_dir / "torque-noise.png"),
         "fig3": fig_trajectories(policies, results, objects, figs_dir / "trajectories.png"),
     }
-    if not args.no_strips:
+    if not args.no_videos:
         for o in objects:
             first = next(s for s in policies if s.obj == o and s.force_feedback) if any(
                 s.obj == o and s.force_feedback for s in policies) else None
-            if first is not None and (p := grasp_strip(first, figs_dir / f"grasp-{o}.png")) is not None:
-                figures[f"strip-{o}"] = p
+            if first is not None and (p := grasp_video(first, figs_dir / f"grasp-{o}.gif")) is not None:
+                figures[f"grasp-{o}"] = p
     seconds = time.perf_counter() - t0
     (args.out / "results.json").write_text(json.dumps(
         {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "policies": summary,
