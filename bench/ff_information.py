@@ -1,16 +1,24 @@
-"""How much of the joint torques can a policy *without* force feedback read off what it still sees?
+"""What do the policies of each observation arm see of the contact and of the object?
 
 The paper's no-force-feedback policies (the 53 numbers of Table I without the 24 torques) stay
 below 35 % success; ForceGrasp's learn nearly as well as those with torques (docs/results.md).
 Suspected cause: every hand joint is a position servo (torque = kp (target - angle) - kv velocity),
 and the targets all lie on the straight line J = h (Jg - J0) + J0, so a finger that a contact
 stops leaves that line, and its joint angles show the contact the torque would have shown.
+``env.proprioception = "commanded"`` (issue 46) fills those slots with the commands instead.
 
 This measures it with ridge-regression probes (standardised inputs, fitted on some episodes,
-scored on held-out ones): R^2 of the 24 torques from the 53 no-force-feedback numbers, and of two
-things the policy needs to know -- hand-object contact and the object's offset (the jitter) --
-from the 53 numbers versus all 77. States come from a shipped force-feedback policy's own
-episodes (sampled actions) on the evaluation's held-out placements.
+scored on held-out ones) for four arms -- measured or commanded proprioception, with or without
+the 24 torques -- on the same states: held-out R^2 of the 24 torques, of the contact state
+(privileged ``hand_contact``, and the five ``fingertip_contacts`` flags) and of the object's
+offset (the jitter), from what that arm observes. States come from a shipped force-feedback
+policy's own episodes (sampled actions) on the evaluation's held-out placements; a commanded-mode
+env is stepped alongside with the same placement and actions (its torques must equal the measured
+env's: the same states), so both observations are the envs' own.
+
+Read the commanded-only column with the loop in mind: these actions are chosen by a policy that
+feels the torques, so the commands it issued (base targets, h) carry what it felt. Only a policy
+that itself sees nothing of the object makes commands that are independent of it.
 
     python bench/ff_information.py                     # every object with a shipped ff policy
     python bench/ff_information.py --objects camera --episodes 60 --json out.json
@@ -31,23 +39,35 @@ from forcegrasp.task import PRIVILEGED_LAYOUT
 
 POLICIES = Path(__file__).resolve().parent.parent / "assets" / "policies"
 N_TORQUES = 24
+#: (name, proprioception, sees the torques)
+ARMS = (("measured+torques", "measured", True), ("measured only", "measured", False),
+        ("commanded+torques", "commanded", True), ("commanded only", "commanded", False))
+TARGETS = ("torques", "hand_contact", "fingertip_contacts", "object_offset")
 
 
 def rollouts(obj: str, policy_file: Path, episodes: int, seed: int):
-    """(observations (n, 77), privileged states (n, 14), episode index (n,)) of sampled-action episodes."""
+    """Observations (n, 77) of the measured and of the commanded env, privileged states (n, 16) and
+    episode index (n,) of sampled-action episodes of the policy (which acts on the measured ones)."""
     policy = Policy.load(policy_file, seed=seed)
-    env = FunctionalGraspEnv(obj, force_feedback=True)
-    obs_all, priv_all, ep_all = [], [], []
-    for k, place in enumerate(placements(seed, episodes, env.jitter, "test", clear=env.is_clear)):
-        obs, _ = env.reset(seed=place.seed, options={"offset": place.offset})
+    envs = {mode: FunctionalGraspEnv.for_policy(policy.metadata, proprioception=mode)
+            for mode in ("measured", "commanded")}
+    measured, commanded = envs["measured"], envs["commanded"]
+    out = {"measured": [], "commanded": [], "priv": [], "episode": []}
+    for k, place in enumerate(placements(seed, episodes, measured.jitter, "test", clear=measured.is_clear)):
+        obs = {mode: env.reset(seed=place.seed, options={"offset": place.offset})[0] for mode, env in envs.items()}
         done = False
         while not done:
-            obs_all.append(obs)
-            priv_all.append(env.privileged_state())
-            ep_all.append(k)
-            obs, _, terminated, truncated, _ = env.step(policy(obs, deterministic=False))
+            if not np.array_equal(obs["measured"][:N_TORQUES], obs["commanded"][:N_TORQUES]):
+                raise RuntimeError(f"{obj}: the commanded env left the measured one's states (episode {k})")
+            for mode in envs:
+                out[mode].append(obs[mode])
+            out["priv"].append(measured.privileged_state())
+            out["episode"].append(k)
+            action = policy(obs["measured"], deterministic=False)
+            obs["measured"], _, terminated, truncated, _ = measured.step(action)
+            obs["commanded"], *_ = commanded.step(action)
             done = terminated or truncated
-    return np.array(obs_all), np.array(priv_all), np.array(ep_all)
+    return {key: np.array(value) for key, value in out.items()}
 
 
 def ridge_r2(x: np.ndarray, y: np.ndarray, train: np.ndarray, lam_per_100: float = 1.0) -> float:
@@ -63,20 +83,22 @@ def ridge_r2(x: np.ndarray, y: np.ndarray, train: np.ndarray, lam_per_100: float
     return float(1.0 - residual / total)
 
 
-def probe(obj: str, policy_file: Path, episodes: int, seed: int) -> dict:
-    obs, priv, ep = rollouts(obj, policy_file, episodes, seed)
-    train = ep < int(0.75 * episodes)
-    torques, seen = obs[:, :N_TORQUES], obs[:, N_TORQUES:]
-    names = [n for n, size in PRIVILEGED_LAYOUT for _ in range(size)]
-    contact = priv[:, [i for i, n in enumerate(names) if n == "hand_contact"]]
-    offset = priv[:, [i for i, n in enumerate(names) if n == "object_offset"]]
-    return {
-        "object": obj, "policy": policy_file.name, "episodes": episodes, "states": len(obs),
-        "contact_share": float(contact.mean()),
-        "torques_from_53": ridge_r2(seen, torques, train),
-        "contact_from_53": ridge_r2(seen, contact, train), "contact_from_77": ridge_r2(obs, contact, train),
-        "offset_from_53": ridge_r2(seen, offset, train), "offset_from_77": ridge_r2(obs, offset, train),
-    }
+def probe(obj: str, policy_file: Path, episodes: int, seed: int) -> list[dict]:
+    """One row per arm: held-out R^2 of each target from what the arm observes."""
+    data = rollouts(obj, policy_file, episodes, seed)
+    train = data["episode"] < int(0.75 * episodes)
+    names = np.array([n for n, size in PRIVILEGED_LAYOUT for _ in range(size)])
+    priv = data["priv"]
+    targets = {"torques": data["measured"][:, :N_TORQUES], **{t: priv[:, names == t] for t in TARGETS[1:]}}
+    contact = targets["hand_contact"]
+    rows = []
+    for arm, mode, torques in ARMS:
+        seen = data[mode] if torques else data[mode][:, N_TORQUES:]
+        rows.append({"object": obj, "policy": policy_file.name, "episodes": episodes, "states": len(seen),
+                     "contact_share": float(contact.mean()), "arm": arm, "proprioception": mode,
+                     "torques_observed": torques, "obs_dim": seen.shape[1],
+                     **{t: ridge_r2(seen, y, train) for t, y in targets.items()}})
+    return rows
 
 
 def main() -> int:
@@ -84,20 +106,26 @@ def main() -> int:
     parser.add_argument("--objects", nargs="*", default=None, help="default: every object with a shipped ff policy")
     parser.add_argument("--episodes", type=int, default=120, help="episodes per object; a quarter are held out")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", default=None, help="write the figures here")
+    parser.add_argument("--json", default=None, help="write the figures here (one row per object and arm)")
     args = parser.parse_args()
+    if args.episodes < 4:
+        parser.error("--episodes must be at least 4 (a quarter are held out)")
     files = sorted(POLICIES.glob("*-ff-s0.safetensors"))
     if args.objects:
         files = [f for f in files if f.name.split("-ff-")[0] in args.objects]
-    print("| object | states (in contact) | torques from the 53 | contact from 53 / 77 | object offset from 53 / 77 |")
-    print("|---|---:|---:|---:|---:|")
+        missing = set(args.objects) - {f.name.split("-ff-")[0] for f in files}
+        if missing:
+            parser.error(f"no shipped force-feedback policy for {', '.join(sorted(missing))}")
+    print("Held-out R^2 of a ridge probe from what each arm observes (1 = fully predictable, 0 = no better "
+          "than the mean)\n")
+    print("| object | states (in contact) | arm | obs | torques | hand contact | fingertip contacts | object offset |")
+    print("|---|---:|---|---:|---:|---:|---:|---:|")
     rows = []
     for f in files:
-        r = probe(f.name.split("-ff-")[0], f, args.episodes, args.seed)
-        rows.append(r)
-        print(f"| {r['object']} | {r['states']} ({r['contact_share']:.0%}) | {r['torques_from_53']:.2f} | "
-              f"{r['contact_from_53']:.2f} / {r['contact_from_77']:.2f} | {r['offset_from_53']:.2f} / "
-              f"{r['offset_from_77']:.2f} |", flush=True)
+        for r in probe(f.name.split("-ff-")[0], f, args.episodes, args.seed):
+            rows.append(r)
+            print(f"| {r['object']} | {r['states']} ({r['contact_share']:.0%}) | {r['arm']} | {r['obs_dim']} | "
+                  + " | ".join(f"{r[t]:.2f}" for t in TARGETS) + " |", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

@@ -71,11 +71,14 @@ class Actor:
 
     def update(self, params: dict[str, np.ndarray], meta: PolicyMetadata, version: int) -> bool:
         """Swap in a newer policy; False for one older than ours. Raises ValueError for a policy
-        of another shape than this actor's envs, or one trained with other action step sizes (an
-        actor started with another configuration would otherwise act, and send transitions, at the
-        wrong scale)."""
+        of another shape than this actor's envs, or one trained with other action step sizes or
+        proprioception (an actor started with another configuration would otherwise act, and send
+        transitions, at the wrong scale or on observations that mean something else)."""
         if meta.obs_dim != self.obs_dim or meta.act_dim != self.act_dim:
             raise ValueError(f"policy is {meta.obs_dim}->{meta.act_dim}, env is {self.obs_dim}->{self.act_dim}")
+        if task.proprioception_of(meta) != self.config.env.proprioception:  # same sizes, other meaning
+            raise ValueError(f"policy observes {task.proprioception_of(meta)} proprioception, "
+                             f"the envs {self.config.env.proprioception}")
         task.check_action_steps(meta, self.config.env.action_steps())  # the sizes make_env gave the envs
         if version <= self.policy_version and self.policy is not None:
             return False  # an older broadcast overtaken by a query reply, say

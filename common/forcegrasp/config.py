@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import math
 import os
 import tomllib
 import typing
@@ -27,14 +26,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
-from forcegrasp.task import ACTION_STEPS
+from forcegrasp.config_values import ConfigError, coerce as _coerce, parse_literal as _parse_literal  # noqa: F401
+from forcegrasp.task import ACTION_STEPS, PROPRIOCEPTION
 
 ENV_PREFIX = "FORCEGRASP_"
 CONFIG_FILE_ENV = "FORCEGRASP_CONFIG"
-
-
-class ConfigError(ValueError):
-    """A configuration value or key is wrong; the message names the key and its source."""
 
 
 def _f(default: Any, help: str, *, min: float | None = None, choices: Sequence[str] | None = None):
@@ -72,6 +68,8 @@ class EnvConfig:
     max_steps: int = _f(200, "episode length limit", min=1)
     torque_history: int = _f(0, "joint torques of this many previous steps added to the observation (24 each; "
                                 "changes Table I: a lever reported apart, never the default)", min=0)
+    proprioception: str = _f("measured", "measured (Table I) or commanded: the servo targets and h the policy sent in "
+                             "place of the measured angles, pose and h (a lever apart)", choices=PROPRIOCEPTION)
     # Action step sizes: what action +1 moves per step (a recipe lever; policy files record them;
     # task.ACTION_STEPS is the one place their defaults live).
     max_translation_step: float = _f(ACTION_STEPS[0], "base translation per step at action +1, metres", min=1e-6)
@@ -163,6 +161,8 @@ class EvaluatorConfig:
     conditions: list[str] = _f([], "test conditions a checkpoint is scored on, each with eval_episodes and "
                                    "final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: "
                                    "5x, 1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's env")
+    cpu_share: float = _f(0.5, "the evaluator service's CPU budget as a fraction of one core (it pauses between "
+                               "evaluations to stay within it; 1: no pause)", min=0.05)
     keep_episode_logs: str = _f("top", "MCAP episode logs kept: of the top-k checkpoints and the latest, or all",
                                 choices=("top", "all"))
     http_host: str = _f("127.0.0.1", "address of the evaluator's HTTP page")
@@ -301,75 +301,6 @@ def _set_dict(table: Any, name: str, entry: str, value: Any, full: str, source: 
     current[entry] = _parse_literal(value) if isinstance(value, str) else value
 
 
-def _parse_literal(text: str) -> Any:
-    """A TOML literal (``3e-4``, ``true``, ``[256, 256]``) or, failing that, the plain string."""
-    try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
-        return text
-
-
-_TRUE = {"1", "true", "yes", "on"}
-_FALSE = {"0", "false", "no", "off"}
-
-
-def _coerce(value: Any, ftype: Any, key: str, source: str) -> Any:
-    """Typed value for a field: strings are parsed, TOML values must already have the type."""
-
-    def bad(why: str = "") -> ConfigError:
-        want = getattr(ftype, "__name__", str(ftype))
-        return ConfigError(f"{source}: {key} = {value!r} is not a valid {want}{why}")
-
-    if ftype == list[float]:
-        items = _split_list(value) if isinstance(value, str) else value
-        if not isinstance(items, list):
-            raise bad(" (a list of numbers)")
-        return [_coerce(i, float, key, source) for i in items]
-    if typing.get_origin(ftype) is list:
-        items = _split_list(value) if isinstance(value, str) else value
-        if not isinstance(items, list) or not all(isinstance(i, str) for i in items):
-            raise bad(" (a list of strings)")
-        return [i.strip() for i in items]
-    if ftype is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.strip().lower() in _TRUE | _FALSE:
-            return value.strip().lower() in _TRUE
-        raise bad(" (true/false)")
-    if ftype is int:
-        if isinstance(value, str):
-            try:
-                return int(value.strip().replace("_", ""))
-            except ValueError:
-                raise bad() from None
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise bad()
-    if ftype is float:
-        if isinstance(value, str):
-            try:
-                value = float(value.strip())
-            except ValueError:
-                raise bad() from None
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-            return float(value)
-        raise bad(" (a finite number)")
-    if ftype is str:
-        if isinstance(value, str):
-            return value
-        raise bad()
-    raise ConfigError(f"{key}: unsupported field type {ftype!r}")  # a bug in this module
-
-
-def _split_list(text: str) -> list[str]:
-    """``"a,b"`` or a TOML array ``'["a", "b"]'``; an empty string is an empty list."""
-    text = text.strip()
-    if text.startswith("["):
-        parsed = _parse_literal(text)
-        return parsed if isinstance(parsed, list) else [text]
-    return [part for part in text.split(",") if part.strip()]
-
-
 def _check_bounds(f: dataclasses.Field, value: Any, key: str, source: str) -> None:
     low, choices = f.metadata.get("min"), f.metadata.get("choices")
     if low is not None and value < low:
@@ -399,6 +330,9 @@ def _check_cross_fields(config: Config) -> None:
             raise ConfigError(f"env.{key} = {span!r} must be empty or [low, high] with "
                               f"{'0 < low' if low is not None else '0 <= low'} <= high")
     from forcegrasp.conditions import check_conditions
+    from forcegrasp.recipes import sac_config
+
+    sac_config(config)  # every [learner.sac] key and value, before any service starts
 
     try:
         check_conditions(config.evaluator.conditions, "evaluator.conditions")

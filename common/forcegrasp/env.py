@@ -2,25 +2,30 @@
 
 The paper's MDP (sections III-V of ``functional-grasp-force-feedback.tex``), one env per file.
 
-Observation (Table I; 77 float32, 53 without force feedback), in this order:
+Observation (Table I; 77 float32, 53 without force feedback; [with commanded proprioception]):
 
     ====================  ====  =================================================================
     joint_torques F        24   actuator force of each hand joint servo (N·m): what a joint
                                 torque sensor reads; optional Gaussian noise N(0, sigma) N·m
-    joint_angles J         24   hand joint angles (rad)
-    hand_pose              6    the base's driving joints: 3 slides (m) and 3 hinges (rad)
-    h                      1    observed progress 1 - 0.5 max_i |j_i - j_i^g| / range_i
+    joint_angles J         24   hand joint angles (rad) [joint_targets J(h_cmd) = h_cmd (Jg - J0) + J0]
+    hand_pose              6    the base's driving joints: 3 slides (m) and 3 hinges (rad) [base_command]
+    h                      1    observed progress 1 - 0.5 max_i |j_i - j_i^g| / range_i [h_command]
     base_targets           6    the base servo targets the policy has commanded
-    prev_hand_pose         6    hand_pose at the previous step
-    prev_h                 1    h at the previous step
+    prev_hand_pose         6    hand_pose at the previous step [prev_base_command]
+    prev_h                 1    h at the previous step [prev_h_command]
     goal_pose (Tg, Rg)     6    goal base joint values (object at its nominal pose)
     goal_palm              3    goal palm position in the world (object at its nominal pose)
     ====================  ====  =================================================================
 
-Nothing about the object's pose, geometry or mass is observed: the jitter is only felt. With
-``torque_history`` k > 0 (a recipe lever outside Table I, never the default) a ``torque_history``
-segment of 24 k follows ``joint_torques``: the torques observed at the k previous steps, newest first
-(at reset, copies of the first reading).
+Nothing about the object's pose, geometry or mass is observed: the jitter is only felt. But the joints
+are position servos (torque = kp (target - angle) - kv velocity), so the measured angles, pose and h
+show a contact too. ``proprioception="commanded"`` (a lever outside Table I, never the default) puts
+what the policy commanded in their places, under their own names (so that policy files record the
+mode): the hand's ctrl J(h_cmd), the base targets (base_command repeats base_targets) and h_cmd, now
+and one step before. Commanded without force feedback, nothing observed depends on the object;
+rewards, success and ``info["h"]`` stay measured. With ``torque_history`` k > 0 (a recipe lever
+outside Table I, never the default) a ``torque_history`` segment of 24 k follows ``joint_torques``:
+the torques observed at the k previous steps, newest first (at reset, copies of the first reading).
 
 Action (7, in [-1, 1]): increments of the 6 base targets (scaled by ``max_translation_step`` m
 and ``max_rotation_step`` rad) and of the commanded h (by ``max_h_step``); the 24 hand joints
@@ -43,16 +48,19 @@ import numpy as np
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
 from forcegrasp.reward import Outcome, RewardWeights, evaluate_state, observed_h  # noqa: F401  (part of this module's API)
+from forcegrasp.sampling import draw_clear_offset, span as checked_range  # noqa: F401  (draw_clear_offset: part of this module's API)
 from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
     ACTION_LAYOUT,
     ACTION_STEPS,
+    COMMANDED_SLOTS,
     OBS_LAYOUT,
     PRIV_DIM,
     PRIVILEGED_LAYOUT,
     action_scale,
     action_steps_of,
     observation_layout,
+    proprioception_of,
     torque_history_of,
 )
 
@@ -60,28 +68,6 @@ from forcegrasp.task import (  # noqa: F401  (the layouts are part of this modul
 # than this, in m); near some edges of the ±2 cm square it would. Random resets redraw such offsets.
 OVERLAP_TOLERANCE = 1e-4
 _ACTION_LIMIT = 1.0 + 1e-6  # actions are in [-1, 1]; this much float slack is tolerated
-MAX_OFFSET_DRAWS = 100
-
-
-def _span(name: str, span, *, positive: bool) -> tuple[float, float] | None:
-    """A randomisation range as (low, high), or None when off (None or empty)."""
-    if span is None or len(span) == 0:
-        return None
-    low, high = (float(x) for x in span)
-    if not (np.isfinite(low) and np.isfinite(high) and (low > 0 if positive else low >= 0) and low <= high):
-        raise ValueError(f"{name} must be (low, high) with {'0 <' if positive else '0 <='} low <= high, got {span!r}")
-    return low, high
-
-
-def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, what: str = "the object") -> np.ndarray:
-    """An offset (dx, dy) uniform in the ±jitter square, redrawn while ``is_clear(offset)`` says no:
-    the one sampling rule of random resets, evaluation placements and the scripted benches."""
-    for _ in range(MAX_OFFSET_DRAWS):
-        offset = rng.uniform(-jitter, jitter, 2)
-        if is_clear is None or is_clear(offset):
-            return offset
-    raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
-                       "in a row; relabel the pre-grasp")
 
 
 class FunctionalGraspEnv(gym.Env):
@@ -108,6 +94,7 @@ class FunctionalGraspEnv(gym.Env):
         max_rotation_step: float = ACTION_STEPS[1],
         max_h_step: float = ACTION_STEPS[2],
         torque_history: int = 0,
+        proprioception: str = "measured",
         mass_scale_range: tuple[float, float] | None = None,
         torque_noise_range: tuple[float, float] | None = None,
         label: GraspLabel | None = None,
@@ -118,13 +105,14 @@ class FunctionalGraspEnv(gym.Env):
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if not (np.isfinite(jitter) and jitter >= 0) or not (np.isfinite(torque_noise_std) and torque_noise_std >= 0):
             raise ValueError(f"jitter and torque_noise_std must be >= 0, got {jitter!r}, {torque_noise_std!r}")
-        self.mass_scale_range = _span("mass_scale_range", mass_scale_range, positive=True)
-        self.torque_noise_range = _span("torque_noise_range", torque_noise_range, positive=False)
+        self.mass_scale_range = checked_range("mass_scale_range", mass_scale_range, positive=True)
+        self.torque_noise_range = checked_range("torque_noise_range", torque_noise_range, positive=False)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
         self.object_spec = load_object(object_name)
         self.label = label if label is not None else load_label(object_name)
         self.force_feedback, self.torque_history = bool(force_feedback), int(torque_history)
+        self.proprioception, self._commanded = proprioception, proprioception == "commanded"
         self.mass_scale, self.jitter, self.torque_noise_std = float(mass_scale), float(jitter), float(torque_noise_std)
         self.frame_skip, self.max_steps = int(frame_skip), int(max_steps)
         self.object_tolerance, self.palm_tolerance = float(object_tolerance), float(palm_tolerance)
@@ -159,11 +147,12 @@ class FunctionalGraspEnv(gym.Env):
         # Goal palm in the world with the object at its nominal pose (origin): Table I's last entry.
         self._goal_tail = np.concatenate([self.label.goal.base, self.label.goal_palm]).astype(np.float32)
 
-        layout = observation_layout(self.force_feedback, torque_history)  # checks torque_history
+        layout = observation_layout(self.force_feedback, torque_history, proprioception)  # checks both
         n_obs = sum(n for _, n in layout)
         # Table I is written into one buffer by slices (cheaper than concatenating 8 parts).
         edges = np.cumsum([0] + [n for _, n in layout])
         self._slots = {name: slice(a, b) for (name, _), a, b in zip(layout, edges, edges[1:])}
+        self._proprio = [self._slots[COMMANDED_SLOTS[n] if self._commanded else n] for n in COMMANDED_SLOTS]
         self._obs = np.zeros(n_obs, np.float32)
         self._obs[self._slots["goal_pose"].start:] = self._goal_tail
         self._h_scratch = np.zeros(len(self._Jg))
@@ -178,10 +167,18 @@ class FunctionalGraspEnv(gym.Env):
 
     @classmethod
     def for_policy(cls, meta, **kwargs) -> "FunctionalGraspEnv":
-        """The env a policy file was trained for: its object, observation and action step sizes
-        (``meta`` is its PolicyMetadata); ``kwargs`` set everything else."""
+        """The env a policy file was trained for: its object, observation (force feedback, torque
+        history, proprioception), action step sizes and training conditions (mass, noise, jitter and
+        their per-episode ranges; ``meta`` is its PolicyMetadata). ``kwargs`` set everything else and
+        override what the file records; a fixed ``mass_scale`` or ``torque_noise_std`` turns the
+        recorded range off (a test condition never randomises)."""
+        recorded = dict(meta.extra.get("training_conditions") or {})
+        for fixed, span in (("mass_scale", "mass_scale_range"), ("torque_noise_std", "torque_noise_range")):
+            if fixed in kwargs or not recorded.get(span):
+                recorded.pop(span, None)
         return cls(meta.object_name, **{"force_feedback": meta.force_feedback, "torque_history": torque_history_of(meta),
-                                        **action_steps_of(meta), **kwargs})
+                                        "proprioception": proprioception_of(meta), **action_steps_of(meta),
+                                        **recorded, **kwargs})
 
     # ------------------------------------------------------------------ episode
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -214,6 +211,7 @@ class FunctionalGraspEnv(gym.Env):
         self.episode_return = 0.0
         self._prev_pose = self._base_q.copy()
         self._prev_h = self._observed_h()
+        self._prev_target, self._prev_h_command = self.base_target, 0.0
         obs = self._observation()
         if self.torque_history:  # no earlier steps: the history starts as copies of the first reading
             at = self._slots
@@ -228,6 +226,7 @@ class FunctionalGraspEnv(gym.Env):
         delta = action * self._action_scale
         self._prev_pose = self._base_q.copy()
         self._prev_h = self._h_now
+        self._prev_target, self._prev_h_command = self.base_target, self.h_command  # base_target: a new array below
         target = self.base_target + delta[:6]
         self.base_target = np.minimum(np.maximum(target, self._base_lo, out=target), self._base_hi, out=target)
         self.h_command = h = min(1.0, max(0.0, self.h_command + float(delta[6])))
@@ -303,7 +302,7 @@ class FunctionalGraspEnv(gym.Env):
         return self._h_now
 
     def _observation(self) -> np.ndarray:
-        """Table I (see the module docstring), a fresh array."""
+        """Table I (see the module docstring), a fresh array; measures h (the reward's) in either mode."""
         h = self._observed_h()
         obs, at = self._obs, self._slots
         if self.force_feedback:
@@ -313,8 +312,11 @@ class FunctionalGraspEnv(gym.Env):
             obs[at["joint_torques"]] = self._hand_force
             if self.episode_noise_std > 0:
                 obs[at["joint_torques"]] += self.np_random.normal(0.0, self.episode_noise_std, 24)
-        obs[at["joint_angles"]], obs[at["hand_pose"]], obs[at["h"]] = self._hand_q, self._base_q, h
-        obs[at["base_targets"]], obs[at["prev_hand_pose"]], obs[at["prev_h"]] = self.base_target, self._prev_pose, self._prev_h
+        obs[at["base_targets"]] = self.base_target
+        for slot, value in zip(self._proprio, (self._hand_ctrl, self.base_target, self.h_command, self._prev_target,
+                                               self._prev_h_command) if self._commanded else
+                               (self._hand_q, self._base_q, h, self._prev_pose, self._prev_h)):
+            obs[slot] = value
         return obs.copy()
 
     def privileged_state(self) -> np.ndarray:
@@ -393,12 +395,11 @@ class FunctionalGraspEnv(gym.Env):
     def render(self):
         if self.render_mode != "rgb_array":
             return None
-        from forcegrasp.render import look_at, make_renderer, render
+        from forcegrasp.render import make_renderer, object_camera, render
 
         if self._renderer is None:
             self._renderer = make_renderer(self.model, 360, 480)
-        target = self.data.xpos[self.ix.object_body] + np.array([0.0, 0.0, 0.08])
-        return render(self._renderer, self.data, look_at(target, 0.55, 200.0, -25.0))
+        return render(self._renderer, self.data, object_camera(self.object_spec.view, self.data.xpos[self.ix.object_body]))
 
     def close(self):
         if self._renderer is not None:

@@ -41,7 +41,7 @@ class Learner:
         self.files = RunDir.of(config)
         self.files.root.mkdir(parents=True, exist_ok=True)
         self.sac_cfg = sac_config(config)
-        self.obs_dim = task.obs_dim(config.env.force_feedback, config.env.torque_history)
+        self.obs_dim = task.obs_dim(config.env.force_feedback, config.env.torque_history, config.env.proprioception)
         self.priv_dim = task.PRIV_DIM if self.sac_cfg.privileged_critic else 0
         self.recent_episodes: collections.deque = collections.deque(maxlen=100)  # (return, length, success)
         self.episode_count = 0

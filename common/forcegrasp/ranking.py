@@ -132,6 +132,7 @@ class Ranker:
                 # recorded only when not the first sizes, so that earlier runs' scores stay valid
                 **({} if tuple(e.action_steps().values()) == FIRST_ACTION_STEPS else e.action_steps()),
                 **({"torque_history": e.torque_history} if e.torque_history else {}),
+                **({"proprioception": e.proprioception} if e.proprioception != "measured" else {}),
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
                 "final_rank_episodes": ev.final_rank_episodes,
                 **({"conditions": list(ev.conditions)} if ev.conditions else {}),
@@ -251,9 +252,10 @@ class Ranker:
             raise CheckpointRejected(str(exc)) from None
         env = self.config.env
         try:
-            check_policy(meta, env.object, env.force_feedback, env.action_steps(), env.torque_history)
+            check_policy(meta, env.object, env.force_feedback, env.action_steps(), env.torque_history, env.proprioception)
         except ValueError as exc:
-            raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback})") from None
+            raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback}, "
+                                     f"proprioception={env.proprioception})") from None
         return weights, meta
 
     def _policy(self, weights, meta):
@@ -335,7 +337,8 @@ class Ranker:
             episodes=result.episodes, rank_score=rank.score, rank_success_rate=rank.success_rate,
             rank_episodes=rank.episodes, sha256=sha256(blob), size=len(blob), object=meta.object_name or
             self.config.env.object, force_feedback=meta.force_feedback,
-            policy_version=int(meta.extra.get("policy_version", 0) or 0), evaluated_at=time.time())
+            policy_version=int(meta.extra.get("policy_version", 0) or 0), evaluated_at=time.time(),
+            conditions=rank.conditions)
         return member, blob
 
     def _rescore_members(self) -> None:

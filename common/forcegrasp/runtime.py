@@ -72,6 +72,7 @@ def make_env(config: Config, **overrides):
         torque_noise_std=e.torque_noise_std,
         max_steps=e.max_steps,
         torque_history=e.torque_history,
+        proprioception=e.proprioception,
         mass_scale_range=e.mass_scale_range or None,
         torque_noise_range=e.torque_noise_range or None,
         **e.action_steps(),
@@ -86,6 +87,7 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
     return task.policy_metadata(config.env.object, config.env.force_feedback, hidden, obs_norm=obs_norm,
                                 training_steps=training_steps, score=score, action_steps=config.env.action_steps(),
                                 torque_history=config.env.torque_history,
+                                proprioception=config.env.proprioception,
                                 extra={"run": config.run.name, "training_conditions": training_conditions(config),
                                        **extra})
 

@@ -1,9 +1,10 @@
 """The task contract, without the simulator: what a FunctionalGrasp policy sees and does.
 
 Every size in ForceGrasp comes from here: the observation layout (Table I of the paper; 77 numbers,
-53 without force feedback; 77 + 24 k with the optional torque history of k steps), the action layout (7), the privileged simulator state an asymmetric
-critic may see in training (14, never part of the observation) and what an action of +1 means in
-env units. `policy_metadata` builds the metadata of a policy for a task and `check_policy` tells
+53 without force feedback; 77 + 24 k with the optional torque history of k steps; the same sizes
+under other names with ``commanded`` proprioception), the action layout (7), the privileged
+simulator state an asymmetric critic may see in training (16, never part of the observation) and
+what an action of +1 means in env units. `policy_metadata` builds the metadata of a policy for a task and `check_policy` tells
 whether a policy file fits an env's settings. Importing this module loads neither mujoco nor
 gymnasium, so protocol clients, the learner and tools can use it.
 """
@@ -26,6 +27,20 @@ OBS_LAYOUT = (
     ("goal_pose", 6),
     ("goal_palm", 3),
 )
+#: What fills Table I's proprioceptive slots: ``measured`` (the paper's: joint angles, hand pose and
+#: observed h, which a contact that stops a position servo shows) or ``commanded`` (what the policy
+#: commanded there instead: the hand joint targets, base targets and commanded h, which no contact
+#: changes; with force feedback off nothing observed then depends on the object). The first is the default.
+PROPRIOCEPTION = ("measured", "commanded")
+#: The Table I slots that ``commanded`` proprioception fills with commands, and their names there.
+#: ``base_targets`` is a command already and keeps its name (and value: base_command repeats it).
+COMMANDED_SLOTS = {
+    "joint_angles": "joint_targets",  # J(h_cmd) = h_cmd (Jg - J0) + J0: the hand servos' ctrl
+    "hand_pose": "base_command",  # the base servos' targets (= base_targets)
+    "h": "h_command",  # the commanded h in [0, 1]
+    "prev_hand_pose": "prev_base_command",  # base_command at the previous step
+    "prev_h": "prev_h_command",  # h_command at the previous step
+}
 ACTION_LAYOUT = (("base_target_delta", 6), ("h_delta", 1))
 ACT_DIM = sum(n for _, n in ACTION_LAYOUT)
 
@@ -54,18 +69,24 @@ FIRST_ACTION_STEPS = (0.004, 0.02, 0.025)
 ACTION_STEP_KEYS = ("max_translation_step", "max_rotation_step", "max_h_step")
 
 
-def observation_layout(force_feedback: bool = True, torque_history: int = 0) -> tuple[tuple[str, int], ...]:
+def observation_layout(force_feedback: bool = True, torque_history: int = 0,
+                       proprioception: str = "measured") -> tuple[tuple[str, int], ...]:
     """Table I; with ``torque_history`` k > 0 the joint torques of the k previous steps (newest
-    first, 24 each) follow the current ones: a lever outside the paper's observation."""
+    first, 24 each) follow the current ones: a lever outside the paper's observation. With
+    ``proprioception="commanded"`` the slots of `COMMANDED_SLOTS` carry their commanded names
+    (same sizes, same order)."""
     check_torque_history(force_feedback, torque_history)
+    check_proprioception(proprioception)
+    table = OBS_LAYOUT if proprioception == "measured" else tuple(
+        (COMMANDED_SLOTS.get(name, name), n) for name, n in OBS_LAYOUT)
     if not force_feedback:
-        return OBS_LAYOUT[1:]
+        return table[1:]
     history = (("torque_history", 24 * int(torque_history)),) if torque_history else ()
-    return (OBS_LAYOUT[0], *history, *OBS_LAYOUT[1:])
+    return (table[0], *history, *table[1:])
 
 
-def obs_dim(force_feedback: bool = True, torque_history: int = 0) -> int:
-    return sum(n for _, n in observation_layout(force_feedback, torque_history))
+def obs_dim(force_feedback: bool = True, torque_history: int = 0, proprioception: str = "measured") -> int:
+    return sum(n for _, n in observation_layout(force_feedback, torque_history, proprioception))
 
 
 def check_torque_history(force_feedback: bool, torque_history: int) -> None:
@@ -75,9 +96,20 @@ def check_torque_history(force_feedback: bool, torque_history: int) -> None:
         raise ValueError("torque_history needs force_feedback: without it no torques are observed")
 
 
+def check_proprioception(proprioception: str) -> None:
+    if proprioception not in PROPRIOCEPTION:
+        raise ValueError(f"proprioception must be one of {', '.join(PROPRIOCEPTION)}, got {proprioception!r}")
+
+
 def torque_history_of(meta: PolicyMetadata) -> int:
     """How many previous steps' torques a policy observes (0 for Table I itself)."""
     return dict(meta.obs_layout).get("torque_history", 0) // 24
+
+
+def proprioception_of(meta: PolicyMetadata) -> str:
+    """What fills a policy's proprioceptive slots: ``commanded`` when its layout names the commanded
+    slots, else ``measured`` (Table I itself, and every file from before the mode existed)."""
+    return "commanded" if "joint_targets" in dict(meta.obs_layout) else "measured"
 
 
 def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_step: float = ACTION_STEPS[1],
@@ -100,12 +132,14 @@ def action_steps_of(meta: PolicyMetadata) -> dict[str, float]:
 
 def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm: bool = False,
                     training_steps: int = 0, score: float | None = None, action_steps: dict | None = None,
-                    torque_history: int = 0, extra: dict | None = None) -> PolicyMetadata:
-    """The metadata of a policy for this task: layouts, action scaling (``action_steps``: the env's
-    step-size keywords, default `ACTION_STEPS`), architecture."""
+                    torque_history: int = 0, proprioception: str = "measured",
+                    extra: dict | None = None) -> PolicyMetadata:
+    """The metadata of a policy for this task: layouts (the observation's records ``torque_history``
+    and ``proprioception``), action scaling (``action_steps``: the env's step-size keywords, default
+    `ACTION_STEPS`), architecture."""
     scale = action_scale(**(action_steps or {}))
     return PolicyMetadata(
-        obs_layout=list(observation_layout(force_feedback, torque_history)),
+        obs_layout=list(observation_layout(force_feedback, torque_history, proprioception)),
         action_layout=list(ACTION_LAYOUT),
         hidden=tuple(hidden),
         object_name=object_name,
@@ -120,15 +154,23 @@ def policy_metadata(object_name: str, force_feedback: bool, hidden, *, obs_norm:
 
 
 def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_feedback: bool | None = None,
-                 action_steps: dict | None = None, torque_history: int = 0) -> None:
+                 action_steps: dict | None = None, torque_history: int = 0, proprioception: str = "measured") -> None:
     """Raise ValueError saying why a policy does not fit an env with these settings (``action_steps``:
-    the env's step-size keywords, default `ACTION_STEPS`; ``torque_history``: the env's)."""
+    the env's step-size keywords, default `ACTION_STEPS`; ``torque_history``, ``proprioception``: the env's)."""
     ff = meta.force_feedback if force_feedback is None else bool(force_feedback)
-    layout = observation_layout(ff, torque_history)
+    layout = observation_layout(ff, torque_history, proprioception)
     if meta.obs_layout != list(layout):
         setting = f"force_feedback={ff}" + (f", torque_history={torque_history}" if torque_history else "")
+        mode = proprioception_of(meta)
+        if mode != proprioception:  # the same sizes mean other things: say which before the names
+            raise ValueError(f"policy observes {mode} proprioception ({[n for n, _ in meta.obs_layout]}); the env "
+                             f"with {setting}, proprioception={proprioception} observes {proprioception} "
+                             f"proprioception ({[n for n, _ in layout]})")
+        if proprioception != "measured":
+            setting += f", proprioception={proprioception}"
         raise ValueError(f"policy observes {meta.obs_dim} numbers ({[n for n, _ in meta.obs_layout]}); "
-                         f"the env with {setting} gives {obs_dim(ff, torque_history)} ({[n for n, _ in layout]})")
+                         f"the env with {setting} gives {obs_dim(ff, torque_history, proprioception)} "
+                         f"({[n for n, _ in layout]})")
     if meta.action_layout != list(ACTION_LAYOUT):
         raise ValueError(f"policy acts with {meta.act_dim} numbers {meta.action_layout}; the env takes {ACTION_LAYOUT}")
     if object_name is not None and meta.object_name and meta.object_name != object_name:

@@ -48,7 +48,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
     """Episodes reported by a real actor process acting with the frozen policy file."""
     from forcegrasp.config import load_config
     from forcegrasp.policy_file import load_policy_file
-    from forcegrasp.task import action_steps_of
+    from forcegrasp.task import action_steps_of, proprioception_of
     from forcegrasp.protocol import Keys, ProtocolError, Weights, decode_transitions, encode_weights
     from forcegrasp.transport import (QueueSubscriber, close_session, declare_queryable, free_tcp_port,
                                       open_session)
@@ -60,7 +60,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
         f"run.name={run}", f"env.object={meta.object_name}", f"env.force_feedback={str(meta.force_feedback).lower()}",
         f"actor.envs_per_actor={envs}", "actor.random_steps=0", "actor.publish_batch=64",
         f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "network.lease_ms=1000",
-        f"learner.sac.obs_norm={str(meta.obs_norm).lower()}",
+        f"learner.sac.obs_norm={str(meta.obs_norm).lower()}", f"env.proprioception={proprioception_of(meta)}",
         *(f"env.{k}={v}" for k, v in action_steps_of(meta).items()),  # the file's step sizes, not today's
     ])
     keys = Keys(run)
