@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from forcegrasp.sac import SACConfig
+from forcegrasp.sac_config import SACConfig, check_value
 
 
 #: Named presets of SACConfig fields (``learner.recipe``); [learner.sac] overrides go on top.
@@ -67,7 +67,10 @@ def sac_config(config) -> SACConfig:
     for key, value in config.learner.sac.items():
         if key not in known:
             raise ConfigError(f"learner.sac.{key}: unknown SAC setting; known: {', '.join(sorted(known))}")
-        overrides[key] = tuple(value) if isinstance(value, list) else value
+        try:
+            overrides[key] = check_value(key, value)
+        except ValueError as exc:
+            raise ConfigError(f"learner.sac.{exc}") from None
     recipe = recipe_settings(config.learner.recipe, config.env.object)
     try:
         return dataclasses.replace(SACConfig(seed=config.run.seed), **{**recipe, **overrides})

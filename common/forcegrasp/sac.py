@@ -42,58 +42,11 @@ from forcegrasp.critic import TwinQ
 from forcegrasp.normalization import RunningMeanStd
 from forcegrasp.policy_file import PolicyMetadata, atomic_write
 from forcegrasp.replay import Batch
+from forcegrasp.sac_config import SACConfig  # noqa: F401  (part of this module's API)
 
 CHECKPOINT_FORMAT = "forcegrasp-sac-checkpoint"
 CHECKPOINT_VERSION = 1
 METRICS = ("critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy", "q1", "q2", "q_target")
-
-
-@dataclass
-class SACConfig:
-    """Every SAC hyper-parameter; defaults are the paper's (table 1 and section 7)."""
-
-    # Data collection and run length.
-    total_steps: int = 1_000_000  # environment steps
-    learning_starts: int = 1_000  # uniformly random actions before the first update
-    updates_per_step: float = 1.0  # gradient updates per environment step (UTD ratio)
-    buffer_size: int = 1_000_000  # replay capacity (transitions)
-    batch_size: int = 256
-    # Networks.
-    hidden: tuple[int, ...] = (256, 256)  # actor and each critic, ReLU
-    critic_hidden: tuple[int, ...] | None = None  # each critic's hidden sizes; None: `hidden`
-    critic_layer_norm: bool = False  # LayerNorm before every critic ReLU (DroQ / RLPD)
-    log_std_bounds: tuple[float, float] = (-20.0, 2.0)  # clamp of the actor's log-std
-    # Optimisation (Adam).
-    actor_lr: float = 3e-4
-    critic_lr: float = 3e-4
-    alpha_lr: float = 3e-4
-    gamma: float = 0.99  # discount
-    reward_scale: float = 1.0  # rewards are multiplied by this in the critic targets (Q-value scale)
-    n_step: int = 1  # n-step returns, built by the actors (forcegrasp.nstep); bootstrap with gamma^h
-    privileged_critic: bool = False  # asymmetric critic: also sees simulator state the actor never does
-    obs_norm: bool = False  # running mean/std of observations, frozen into every policy file
-    actor_ema: float = 0.0  # >0: actors and policy files get a Polyak average of the actor at this rate
-    tau: float = 0.005  # Polyak rate of the target critics
-    target_update_interval: int = 1  # updates between target-critic updates
-    # Entropy temperature.
-    autotune_alpha: bool = True  # learn alpha so that entropy tracks target_entropy
-    init_alpha: float = 1.0
-    target_entropy: float | None = None  # None: -action_dim (paper's heuristic)
-    # Runtime.
-    seed: int = 0
-    device: str = "auto"  # "auto": CUDA when available, else CPU
-    num_threads: int | None = None  # CPU intra-op threads; None: half the usable cores (configure_threads)
-    parallel_branches: bool | None = None  # critic and actor gradients in two threads; None: CPU, >= 2 cores
-
-    def __post_init__(self):
-        self.hidden = tuple(int(h) for h in self.hidden)
-        if self.critic_hidden is not None:
-            self.critic_hidden = tuple(int(h) for h in self.critic_hidden)
-        for name in ("hidden", "critic_hidden"):
-            sizes = getattr(self, name)
-            if sizes is not None and (not sizes or min(sizes) <= 0):
-                raise ValueError(f"{name} {sizes}: at least one layer, every size positive")
-        self.log_std_bounds = tuple(float(b) for b in self.log_std_bounds)
 
 
 class CriticTerms(NamedTuple):

@@ -32,7 +32,7 @@ import logging
 import os
 import re
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable
 
@@ -70,6 +70,7 @@ class Member:
     force_feedback: bool
     policy_version: int = 0
     evaluated_at: float = 0.0
+    conditions: dict = field(default_factory=dict)  # the rank score per test condition, when several are mixed
 
     def membership_key(self) -> tuple:
         return (-self.score, self.step)
@@ -82,7 +83,7 @@ class Member:
         if not isinstance(raw, dict):
             raise ValueError("member is not a JSON object")
         names = {f.name for f in fields(cls)}
-        missing = sorted(names - set(raw) - {"policy_version", "evaluated_at"})
+        missing = sorted(names - set(raw) - {"policy_version", "evaluated_at", "conditions"})
         if missing:
             raise ValueError(f"member misses {missing}")
         member = cls(**{k: raw[k] for k in names if k in raw})

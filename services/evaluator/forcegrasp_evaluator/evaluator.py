@@ -56,6 +56,7 @@ class EvaluatorService(Ranker):
         self.http: EvaluatorHTTPServer | None = None
         self._t0 = self._last_scan = time.monotonic()
         self.writer = None  # TensorBoard, opened by run(): the evaluator's figures beside the learner's
+        self.cpu: CpuBudget | None = None  # its CPU budget, while run() runs
 
     def on_commit(self, step, result) -> None:
         self.refresh_snapshot()
@@ -148,6 +149,7 @@ class EvaluatorService(Ranker):
             "rejected": self.rejects.total,
             "rejected_by_reason": self.rejects.counts(),
             "uptime_s": time.monotonic() - self._t0,
+            "cpu_share": self.cpu.share() if self.cpu is not None else None,
         }
 
     def start_http(self) -> None:
@@ -189,9 +191,13 @@ class EvaluatorService(Ranker):
             stats_pub.put(encode_stats(Stats("evaluator", self.instance, self.stats())))
             stats_thread = threading.Thread(target=publish_stats, name="evaluator-stats", daemon=True)
             stats_thread.start()
+            budget = CpuBudget(self.config.evaluator.cpu_share)
+            self.cpu = budget
             while not stop.is_set():
                 if not self.poll_once():
                     stop.wait(0.1)
+                elif (rest := budget.rest()) > 0:
+                    stop.wait(rest)  # within its CPU share: training keeps the cores it needs
             subscriber.undeclare()
             queryable.undeclare()
             token.undeclare()
@@ -203,6 +209,28 @@ class EvaluatorService(Ranker):
             self.writer.close()
             if self.http is not None:
                 self.http.stop()
+
+
+class CpuBudget:
+    """Keeps a process's CPU time within ``limit`` of one core, averaged since it was made: after
+    each piece of work, `rest` says how long to pause. Scoring several test conditions costs
+    several times the episodes; on a small machine an unbounded evaluator takes the cores training
+    needs, so its share is a setting (``evaluator.cpu_share``) and its measured share a statistic."""
+
+    def __init__(self, limit: float, clock=time.monotonic, cpu_clock=time.process_time):
+        self.limit, self.clock, self.cpu_clock = float(limit), clock, cpu_clock
+        self.wall0, self.cpu0 = clock(), cpu_clock()
+
+    def share(self) -> float:
+        """CPU seconds used per wall-clock second so far."""
+        wall = self.clock() - self.wall0
+        return (self.cpu_clock() - self.cpu0) / wall if wall > 0 else 0.0
+
+    def rest(self) -> float:
+        """Seconds to pause so that the share falls back to the limit (0 when within it)."""
+        if self.limit >= 1.0:
+            return 0.0
+        return max(0.0, (self.cpu_clock() - self.cpu0) / self.limit - (self.clock() - self.wall0))
 
 
 CRASH_ENV = "FORCEGRASP_FAULT_CRASH_AT"  # not FORCEGRASP_EVALUATOR_*: that prefix is configuration
