@@ -8,7 +8,6 @@ import sys
 import time
 
 from forcegrasp.cli import SERVICES
-from forcegrasp.cli.up import progress_line
 from forcegrasp.transport import free_tcp_port
 
 
@@ -46,11 +45,10 @@ def test_up_shows_progress_and_ctrl_c_stops_every_service(tmp_path):
             lines.append(line)
             if line.startswith("started"):
                 pids = [int(p) for p in re.findall(r"pid (\d+)", line)]
-            m = re.match(r"steps\s+(\d+)\s+updates\s+(\d+)", line)
-            if m and int(m.group(2)) > 0:
+            if re.search(r"env steps, \d+/s \| .*[1-9][\d.]*k? updates \| online success", line):
                 break
         assert len(pids) == 3 + ("evaluator" in SERVICES), "".join(lines)  # learner, two actors, evaluator
-        assert any(re.match(r"steps\s+\d+\s+updates\s+[1-9]", l) for l in lines), "".join(lines)
+        assert any(re.search(r" updates \| online success", l) for l in lines), "".join(lines)
         proc.send_signal(signal.SIGINT)
         out, _ = proc.communicate(timeout=60)
         lines.append(out)
@@ -64,17 +62,7 @@ def test_up_shows_progress_and_ctrl_c_stops_every_service(tmp_path):
     text = "".join(lines)
     assert proc.returncode == 0, text
     assert "all services stopped" in text
+    assert re.search(r"up: [\d,]+ env steps in [\d.]+ min of this start", text), text  # the exit summary
     assert not [pid for pid in pids if _alive(pid)]
     assert (tmp_path / "up" / "checkpoint.safetensors").is_file()  # the learner checkpointed on SIGINT
     assert (tmp_path / "up" / "logs" / "learner.log").is_file()
-
-
-def test_progress_line_labels_the_online_and_the_evaluated_success():
-    line = progress_line({
-        "learner": {"ingested": 1000, "updates": 250, "updates_per_s": 60.0, "policy_version": 3, "return_mean": 500.0,
-                    "success_rate": 0.94, "rejected": 0},
-        "evaluator": {"evaluations": 7, "latest_success_rate": 0.5, "latest_episodes": 10, "latest_step": 900,
-                      "best_success_rate": 0.88, "best_episodes": 100, "best_step": 600},
-    })
-    assert "online success(100) 94%" in line
-    assert "latest 50% of 10 (step 900)" in line and "best 88% of 100 (step 600)" in line

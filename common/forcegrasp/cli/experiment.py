@@ -275,11 +275,14 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         thread = threading.Thread(target=marker, daemon=True, name="marks")
         thread.start()
         try:
-            up(config, RunDir(run_dir).cluster_config, stop_after=remaining, log=log, evaluator=evaluator)
+            status = up(config, RunDir(run_dir).cluster_config, stop_after=remaining, log=log, evaluator=evaluator)
         finally:
             stop.set()
             thread.join()
             save_clock()
+        if status:  # a service kept crashing (or the output closed): the marks would not mean what they say
+            raise SystemExit(f"experiment {label}: the cluster stopped early (exit {status}); the record is kept "
+                             "and the same command resumes it")
         if record["elapsed_s"] >= minutes * 60.0 - 1.0:
             take_mark(run_dir, record, float(minutes), record["elapsed_s"])
     test_marks(run_dir, record, workers or max(1, os.cpu_count() or 1), log)

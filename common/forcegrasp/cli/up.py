@@ -2,7 +2,7 @@
 
 Starts the learner, ``actor.num_actors`` actors and the evaluator from one
 resolved configuration file, prints one progress line every few seconds from the services' own
-stats messages, restarts a service that dies (with backoff; it gives up on one that keeps crashing,
+stats messages (a status line, rewritten in place on a terminal), restarts a service that dies (with backoff; it gives up on one that keeps crashing,
 `forcegrasp.supervisor`), and on Ctrl-C (or SIGTERM, or when its output pipe closes) stops them all:
 SIGINT first so the learner writes its checkpoint, SIGKILL after a grace period.
 """
@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from forcegrasp.config import add_config_arguments, config_from_args
+from forcegrasp.console import StatusPrinter, exit_summary, resume_notice, status_line
 from forcegrasp.protocol import Keys, ProtocolError, decode_stats
 from forcegrasp.rundir import RunDir
 from forcegrasp.runtime import open_service_session
@@ -42,28 +43,7 @@ def evaluator_summary(ev: dict) -> str:
               f"{ev['latest_success_rate']:.0%} of {ev.get('latest_episodes')} (step {ev.get('latest_step')})")
     best = ("-" if ev.get("best_success_rate") is None else
             f"{ev['best_success_rate']:.0%} of {ev.get('best_episodes')} (step {ev['best_step']})")
-    return f"evaluator ({ev.get('evaluations', 0)} checkpoints): latest {latest}, best {best}"
-
-
-def progress_line(stats: dict) -> str:
-    """One line from the services' stats. Two success figures, labelled for what they are: the
-    actors' online rate (last 100 episodes, sampled actions, weights changing under them) and the
-    evaluator's deterministic tests (its latest checkpoint on its fixed placements, and the best's
-    final-ranking score): the figure a user gets from ``forcegrasp best``."""
-    learner = stats.get("learner")
-    if learner is None:
-        return "waiting for the learner..."
-    ret = learner.get("return_mean")
-    succ = learner.get("success_rate")
-    actors = [f"{k}: v{v.get('policy_version', 0)} {v.get('steps_per_s', 0):.0f} st/s" for k, v in sorted(stats.items())
-              if k not in ("learner", "evaluator")]
-    ev = stats.get("evaluator")
-    if ev is not None:
-        actors.append(f"| {evaluator_summary(ev)}")
-    return (f"steps {learner['ingested']:>9}  updates {learner['updates']:>8} ({learner['updates_per_s']:.0f}/s)  "
-            f"v{learner['policy_version']}  online return(100) {'-' if ret is None else f'{ret:.1f}'}  "
-            f"online success(100) {'-' if succ is None else f'{succ:.0%}'}  rejected {learner['rejected']}  | "
-            + "  ".join(actors))
+    return f"evaluator: latest held-out {latest}, best held-out {best}"
 
 
 def drop_closed_output() -> None:
@@ -83,22 +63,29 @@ def drop_closed_output() -> None:
 
 
 def up(config, config_path: Path, stop_after: float | None = None, log=print, evaluator: bool = True,
-       policy: RestartPolicy = RestartPolicy()) -> int:
+       policy: RestartPolicy = RestartPolicy(), tty: bool = False) -> int:
     """Runs the cluster; the exit status is 0 after ``stop_after`` seconds or a signal, 1 when the
-    output pipe closed or a service kept crashing."""
+    output pipe closed or a service kept crashing. ``tty``: ``log`` is a terminal's print (the status
+    line is rewritten in place); otherwise a plain status line every 10 s."""
     files = RunDir.of(config)
+    resumed = resume_notice(files)
     files.root.mkdir(parents=True, exist_ok=True)
     config_path.write_text(config.to_toml())
     logs = files.logs
     logs.mkdir(exist_ok=True)
     state = {"stop": False, "status": 0}
 
-    def say(message: str) -> None:  # `forcegrasp up | head`: the services must still be stopped
+    printer = StatusPrinter(log, tty)
+
+    def guarded(write, message: str) -> None:  # `forcegrasp up | head`: the services must still be stopped
         try:
-            log(message)
+            write(message)
         except BrokenPipeError:
             state.update(stop=True, status=1)
             drop_closed_output()
+
+    def say(message: str) -> None:
+        guarded(printer.say, message)
 
     def on_signal(signum, frame):
         state["stop"] = True
@@ -108,6 +95,10 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
     commands = service_commands(config_path, config.actor.num_actors, evaluator, config.run.seed)
     services = Supervisor(commands, logs, policy, say)
     session = stats_sub = None
+    latest: dict[str, dict] = {}
+    t0 = time.monotonic()
+    if resumed:
+        say(resumed)
     try:
         for name in commands:
             services.start(name)
@@ -117,8 +108,7 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
             "Ctrl-C stops")
         session = open_service_session(config, "monitor")
         stats_sub = QueueSubscriber(session, Keys(config.run.name).all_stats, maxsize=256, put_timeout=0.0)
-        latest: dict[str, dict] = {}
-        t0 = last_line = time.monotonic()
+        last_line = time.monotonic()
         while not state["stop"] and (stop_after is None or time.monotonic() - t0 < stop_after):
             payload = stats_sub.get(timeout=0.2)
             if payload is not None:
@@ -132,8 +122,8 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
                 say(failure)
                 state["status"] = 1
                 break
-            if time.monotonic() - last_line > 3.0:
-                say(progress_line(latest))
+            if time.monotonic() - last_line > 2.0:
+                guarded(printer.status, status_line(latest, time.monotonic() - t0))
                 last_line = time.monotonic()
     finally:
         if stats_sub is not None:
@@ -142,6 +132,8 @@ def up(config, config_path: Path, stop_after: float | None = None, log=print, ev
         say("stopping: SIGINT to every service, the learner writes its checkpoint")
         services.stop(GRACE_S)
     say("all services stopped")
+    for line in exit_summary(files, latest, time.monotonic() - t0, config.run.name):
+        say(line)
     return state["status"]
 
 
@@ -155,4 +147,4 @@ def main(argv=None) -> int:
     config = config_from_args(args)
     path = RunDir.of(config).cluster_config
     log = functools.partial(print, flush=True)  # lines reach a pipe at once; a closed one shows at once
-    return up(config, path, args.stop_after, log=log, evaluator=not args.no_evaluator)
+    return up(config, path, args.stop_after, log=log, evaluator=not args.no_evaluator, tty=sys.stdout.isatty())

@@ -1,0 +1,81 @@
+"""What `forcegrasp up` prints: a status line that fits 100 columns with every figure named, a
+notice when a run resumes, and an exit summary that names the best policy file."""
+
+from __future__ import annotations
+
+import json
+
+from forcegrasp.config import load_config
+from forcegrasp.console import StatusPrinter, exit_summary, read_checkpoint_step, resume_notice, status_line
+from forcegrasp.rundir import RunDir
+from forcegrasp.sac import SAC, SACConfig
+
+BIG = {
+    "learner": {"ingested": 123_456_789, "updates": 98_765_432, "updates_per_s": 1234.0, "policy_version": 99999,
+                "return_mean": -12345.6, "success_rate": 0.94, "rejected": 123456},
+    "evaluator": {"evaluations": 12345, "best_success_rate": 0.88, "best_episodes": 100, "best_step": 123_000_000},
+    **{f"actor-{i}": {"steps_per_s": 412.5, "policy_version": 99999} for i in range(16)},
+}
+
+
+def test_status_line_fits_100_columns_and_names_its_figures():
+    for elapsed in (0.0, 59.0, 3600.0 * 99):
+        line = status_line(BIG, elapsed)
+        assert len(line) <= 100, line
+    line = status_line(BIG, 600.0)
+    assert "env steps" in line and "online success 94%" in line and "best held-out 88%" in line
+    assert "6600/s" in line
+    assert "waiting for the learner" in status_line({}, 3.0)
+
+
+def test_status_is_rewritten_in_place_on_a_terminal_and_plain_in_a_log():
+    out = []
+
+    def write(text, end="\n"):
+        out.append(text + end)
+
+    tty = StatusPrinter(write, is_tty=True)
+    tty.status("a")
+    tty.status("b")
+    tty.say("done")
+    assert out[0].startswith("\ra") and out[1].startswith("\rb") and "\n" not in out[0] + out[1]
+    assert out[2:] == ["\n", "done\n"]  # the status line is ended before a message
+    out.clear()
+    plain = StatusPrinter(write, is_tty=False, every_s=60.0)
+    plain.status("a")
+    plain.status("b")  # within the interval: not printed
+    assert out == ["a\n"]
+
+
+def _run_with_checkpoint_and_best(tmp_path, step=4321):
+    config = load_config(env={}, overrides=["run.name=con", f"run.output_dir={tmp_path}"])
+    files = RunDir.of(config)
+    files.root.mkdir(parents=True)
+    SAC(5, 2, SACConfig(hidden=(4,), device="cpu")).save_checkpoint(files.checkpoint, extra={"ingested": step})
+    files.top.mkdir(parents=True)
+    members = [{"file": "policy-000004000.safetensors", "step": 4000, "best": True, "rank_success_rate": 0.97,
+                "rank_episodes": 100},
+               {"file": "policy-000002000.safetensors", "step": 2000, "best": False, "rank_success_rate": 0.5,
+                "rank_episodes": 100}]
+    files.top_index.write_text(json.dumps({"members": members, "best": members[0]["file"]}))
+    return config, files
+
+
+def test_a_resumed_run_says_so(tmp_path):
+    config, files = _run_with_checkpoint_and_best(tmp_path)
+    assert read_checkpoint_step(files.checkpoint) == 4321
+    notice = resume_notice(files)
+    assert "resumed" in notice and "step 4,321" in notice and "keeps 2 checkpoints" in notice
+    fresh = RunDir.of(load_config(env={}, overrides=["run.name=new", f"run.output_dir={tmp_path}"]))
+    assert resume_notice(fresh) is None
+    files.checkpoint.write_bytes(b"garbage")  # a corrupt checkpoint is not a resume the console can claim
+    assert resume_notice(files) is None
+
+
+def test_exit_summary_names_the_best_policy_file_and_how_to_fetch_it(tmp_path):
+    config, files = _run_with_checkpoint_and_best(tmp_path)
+    lines = exit_summary(files, {"learner": {"ingested": 5000}}, 125.0, "con")
+    text = "\n".join(lines)
+    assert "5,000 env steps in 2.1 min" in text
+    assert str(files.top / "policy-000004000.safetensors") in text and "97% of 100" in text
+    assert "forcegrasp best --set run.name=con" in text
