@@ -15,6 +15,13 @@ __version__ = "0.1.0"
 ASSETS_DIR = Path(os.environ.get("FORCEGRASP_ASSETS") or str(resources.files(__name__) / "assets"))
 
 
+def docs_dir() -> Path:
+    """Where generated pages and pictures go: the docs/ beside the asset folder (a checkout's, or a
+    FORCEGRASP_ASSETS set's); an installed package's own assets are no place to write, so ./docs."""
+    beside = ASSETS_DIR.resolve().parent / "docs"
+    return beside if beside.is_dir() or os.environ.get("FORCEGRASP_ASSETS") else Path.cwd() / "docs"
+
+
 # Gymnasium ids (FunctionalGrasp-<Object>-v0) are registered by `forcegrasp.env` when it is
 # imported, and here when gymnasium already is: `import gymnasium; import forcegrasp` then
 # `gymnasium.make("FunctionalGrasp-Mug-v0")` works, while a client that only speaks the protocol

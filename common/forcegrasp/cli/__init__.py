@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-from pathlib import Path
 
 
 def cmd_label(args) -> int:
@@ -58,15 +56,10 @@ def label_ok(checks: dict) -> bool:
 
 
 def _save_grasp_picture(name: str, label=None):
-    from forcegrasp import ASSETS_DIR
+    from forcegrasp import docs_dir
     from forcegrasp.render import grasp_picture, save_png
 
-    # Beside the asset folder (a checkout's docs/, or a FORCEGRASP_ASSETS set's); an installed
-    # package's own assets are not a place to write, so there it is ./docs/grasps.
-    docs = ASSETS_DIR.resolve().parent / "docs"
-    if not (docs.is_dir() or os.environ.get("FORCEGRASP_ASSETS")):
-        docs = Path.cwd() / "docs"
-    path = docs / "grasps" / f"{name}.png"
+    path = docs_dir() / "grasps" / f"{name}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     save_png(path, grasp_picture(name, label))
     return path

@@ -17,6 +17,7 @@ import sys
 import time
 from pathlib import Path
 
+from forcegrasp import docs_dir
 from forcegrasp.report import (FIG3_OFFSETS, MASSES, NOISE_LEVELS, PAPER, POLICIES_DIR, PROTOCOLS, run_experiments,
                                shipped_policies, summarise)
 
@@ -241,7 +242,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="forcegrasp report", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced trial counts (CI)")
     parser.add_argument("--policies", type=Path, default=POLICIES_DIR, help=f"folder of shipped policies ({POLICIES_DIR})")
-    parser.add_argument("--out", type=Path, default=POLICIES_DIR.parent.parent / "docs", help="folder for results.md")
+    parser.add_argument("--out", type=Path, default=docs_dir(), help="folder for results.md (default: docs/)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     parser.add_argument("--no-videos", "--no-strips", dest="no_videos", action="store_true",
                         help="skip the rendered grasp GIFs")
