@@ -1,0 +1,81 @@
+"""The robustness table from `forcegrasp experiment` records tested under several conditions: per
+run, the held-out success of the evaluator's pick at each mark under every test condition
+(`forcegrasp.conditions`), their mean, and the run's environment steps and steps per second.
+Only records made with ``evaluator.conditions`` take part.
+
+    python bench/robustness_table.py experiments/*.json
+    python bench/robustness_table.py --write docs/recipe.md experiments/*.json   # between its markers
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+MARKER = "robustness-table"
+
+
+def randomisation(record: dict) -> str:
+    """The run's training-time randomisation and demonstrations, in words."""
+    env = record.get("config", {}).get("env", {})
+    parts = []
+    if env.get("mass_scale_range"):
+        low, high = env["mass_scale_range"]
+        parts.append(f"mass {low:g}–{high:g}×")
+    if env.get("torque_noise_range"):
+        low, high = env["torque_noise_range"]
+        parts.append(f"noise {low:g}–{high:g} N·m")
+    demos = record.get("effective", {}).get("demo_episodes")
+    if demos is not None and demos != 4:
+        parts.append(f"{demos} demonstrations")
+    return ", ".join(parts) or "none (5× only)"
+
+
+def rows(records: list[dict]) -> list[str]:
+    conditions = list(dict.fromkeys(c for r in records for c in r.get("conditions") or []))
+    head = ["| run | object | seed | randomisation | mark | " + " | ".join(conditions) + " | mean | env steps | steps/s |",
+            "|---|---|---:|---|---:|" + "---:|" * len(conditions) + "---:|---:|---:|"]
+    out = []
+    for r in sorted(records, key=lambda r: (r["object"], randomisation(r), r["seed"])):
+        for m in r["marks"]:
+            pick = m.get("test", {}).get("best")
+            if pick is None or "conditions" not in pick:
+                continue
+            cells = [f"{pick['conditions'][c]['success_rate']:.0%}" if c in pick["conditions"] else "–"
+                     for c in conditions]
+            steps = m.get("steps", {})
+            rate = steps.get("latest", 0) / m["elapsed_s"] if m.get("elapsed_s") else 0
+            out.append(f"| {r['label']} | {r['object']} | {r['seed']} | {randomisation(r)} | {m['minute']:.0f} min | "
+                       + " | ".join(cells) + f" | **{pick['success_rate']:.0%}** | {steps.get('best', 0) / 1000:.0f} k "
+                       f"| {rate:.0f} |")
+    return head + out if out else []
+
+
+def write_between_markers(page: Path, lines: list[str]) -> None:
+    """Replace what lies between ``<!-- robustness-table -->`` and its closing marker in ``page``."""
+    text = page.read_text()
+    pattern = re.compile(rf"(<!-- {MARKER} -->\n).*?(<!-- /{MARKER} -->)", re.S)
+    if not pattern.search(text):
+        raise SystemExit(f"{page}: no <!-- {MARKER} --> ... <!-- /{MARKER} --> markers")
+    page.write_text(pattern.sub(lambda m: m.group(1) + "".join(line + "\n" for line in lines) + m.group(2), text))
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("records", nargs="+", type=Path)
+    parser.add_argument("--write", type=Path, help="put the table between this page's markers instead of printing it")
+    args = parser.parse_args(argv)
+    records = [r for r in (json.loads(p.read_text()) for p in args.records) if r.get("conditions") and "marks" in r]
+    lines = rows(records)
+    if args.write:
+        write_between_markers(args.write, lines)
+        print(f"wrote {len(lines)} lines into {args.write}")
+    else:
+        print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
