@@ -5,37 +5,36 @@ not depend on the machine: the environment steps the first pick at or above 90 %
 and each run's environment steps per second (the same two cores ran 110-430 steps/s in different
 sessions, so minutes compare only within one session).
 
-Levers are read from each record's configuration (its `effective` SAC settings and demonstrations
-where the record has them, else recipe preset + [learner.sac] overrides; + the actor and env keys
-of `RUN_LEVERS`: demonstrations, environments per actor, action step sizes) and named by how they
-differ from the default recipe on that object (`forcegrasp.recipes.recipe_settings`, `OBJECT_DEMOS`),
-so a record says itself what it measured; a record without `effective` is read with the presets of
-its day (`EARLIER_RECIPES`, `EARLIER_DEMOS`). A mark a run never reached is "–", never a guess; the
-table's last column says how long each group's runs were. The label era comes from the file's prefix (the
-grasp labels changed twice while the runs were made): `s-` first labels, `n-` human-like labels
-(issue 14; the mug's over-the-top label), `h-` the mug through the handle. The action step sizes
-became 1.5x on 2026-12-03: a record that names none ran at the first sizes, and runs at those read
-"first action steps".
+Levers are read from each record: its `effective` SAC settings and demonstrations (what the run
+trained with), and the actor and env keys of `RUN_LEVERS` in its configuration (environments per
+actor, action step sizes, torque history), and named by how they differ from the default recipe on
+that object (`forcegrasp.recipes.recipe_settings`, `OBJECT_DEMOS`), so a record says itself what it
+measured; runs at the action step sizes of `FIRST_ACTION_STEPS` read "first action steps". A mark a
+run never reached is "–", never a guess; the table's last columns say how long each group's runs
+were and how fast they ran. Only version-2 records are read (`forcegrasp.cli.experiment.check_record`).
 
-    python bench/ablation_table.py docs/recipe-runs/*.json
+    python bench/ablation_table.py experiments/*.json
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import statistics
+import sys
 from collections import defaultdict
 from pathlib import Path
 
+from forcegrasp.cli.experiment import RecordError, read_record
 from forcegrasp.config import Config
-from forcegrasp.recipes import EARLIER_RECIPES, demo_episodes, earlier_demo_episodes, recipe_settings
+from forcegrasp.recipes import demo_episodes, recipe_settings
 from forcegrasp.sac import SACConfig
-from forcegrasp.task import ACTION_STEP_KEYS, FIRST_ACTION_STEPS
+from forcegrasp.task import ACTION_STEP_KEYS
 
 MARKS = (10.0, 20.0, 40.0, 60.0)
-ERAS = {"s-": "first labels", "n-": "human-like labels", "h-": "mug through the handle"}
+#: Action step sizes named as one term, "first action steps" (2/3 of today's default), in place of
+#: three "key = value" terms.
+FIRST_ACTION_STEPS = (0.004, 0.02, 0.025)
 #: Levers outside [learner.sac], by section; named by their key alone.
 RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
               "env": ("max_translation_step", "max_rotation_step", "max_h_step", "torque_history")}
@@ -55,22 +54,12 @@ def _same(a, b) -> bool:
 
 
 def settings(record: dict) -> dict:
-    """The SAC levers and the `RUN_LEVERS` a record trained with (those away from their defaults)."""
-    config = record.get("config") or {}
-    learner = config.get("learner")
-    effective = record.get("effective")
-    if effective is not None:  # records since per-object recipes: what the run trained with
-        sac = {k: v for k, v in effective["sac"].items() if k in OFF and k != "seed" and not _same(v, OFF[k])}
-    elif learner is None:  # s-base-camera: plain `forcegrasp up` before the harness, UTD 0.25 (docs/recipe.md)
-        sac = {"updates_per_step": 0.25}
-    else:  # earlier records: read with the presets of their day
-        sac = {**EARLIER_RECIPES[learner.get("recipe", "paper")], **learner.get("sac", {})}
-    missing = {**OFF, **dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS))}  # records from before the step keys
-    run = {key: (config.get(section) or {}).get(key, missing[key]) for section, keys in RUN_LEVERS.items() for key in keys}
-    if effective is not None:
-        run["demo_episodes"] = effective["demo_episodes"]
-    else:  # "-1: the object's number", as it was then
-        run["demo_episodes"] = earlier_demo_episodes(record.get("object", ""), run["demo_episodes"])
+    """The SAC levers and the `RUN_LEVERS` a record trained with (those away from their defaults; a
+    key its configuration lacks is at the default)."""
+    config, effective = record["config"], record["effective"]
+    sac = {k: v for k, v in effective["sac"].items() if k in OFF and k != "seed" and not _same(v, OFF[k])}
+    run = {key: (config.get(section) or {}).get(key, OFF[key]) for section, keys in RUN_LEVERS.items() for key in keys}
+    run["demo_episodes"] = effective["demo_episodes"]
     return {**sac, **{k: v for k, v in run.items() if v != OFF[k]}}
 
 
@@ -91,7 +80,7 @@ def lever_name(levers: dict, object_name: str = "") -> str:
 def success_at(record: dict, minute: float) -> float | None:
     for mark in record.get("marks", []):
         if abs(mark["minute"] - minute) < 1e-6:
-            best = mark.get("test", {}).get("best")  # s-base-camera froze only its final pick
+            best = mark.get("test", {}).get("best")  # none: a run without the evaluator
             return None if best is None else best["success_rate"]
     return None
 
@@ -132,24 +121,23 @@ def cell(values: list[float]) -> str:
 
 
 def table(paths: list[Path]) -> str:
+    """The markdown table of the records at ``paths``; a `RecordError` for a file that is not a
+    version-2 experiment record."""
     groups = defaultdict(list)
     for path in paths:
-        record = json.loads(path.read_text())
-        if "marks" not in record:  # e.g. a snapshot-spread record
-            continue
-        era = next((e for p, e in ERAS.items() if path.name.startswith(p)), "other")
-        key = (era, record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
+        record = read_record(path)
+        key = (record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
         groups[key].append(record)
-    lines = ["| labels | object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
+    lines = ["| object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
              + " | to 90 %: pick's env steps, median [range] | run lengths | env steps/s |",
-             "|---|---|---|---|---|" + "---:|" * len(MARKS) + "---|---|---|"]
-    for (era, obj, ff, name), records in sorted(groups.items()):
+             "|---|---|---|---|" + "---:|" * len(MARKS) + "---|---|---|"]
+    for (obj, ff, name), records in sorted(groups.items()):
         records = sorted(records, key=lambda r: r["seed"])  # seeds, lengths and speeds in one order
         seeds = ", ".join(str(r["seed"]) for r in records)
         cells = [cell([v for r in records if (v := success_at(r, m)) is not None]) for m in MARKS]
         lengths = ", ".join(f"{r['marks'][-1]['minute']:.0f}" for r in records) + " min"
         speeds = ", ".join("?" if (v := steps_per_s(r)) is None else f"{v:.0f}" for r in records)
-        lines.append(f"| {era} | {obj} | {'yes' if ff else 'no'} | {name} | {seeds} | " + " | ".join(cells)
+        lines.append(f"| {obj} | {'yes' if ff else 'no'} | {name} | {seeds} | " + " | ".join(cells)
                      + f" | {steps_cell(records)} | {lengths} | {speeds} |")
     return "\n".join(lines)
 
@@ -157,7 +145,11 @@ def table(paths: list[Path]) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("records", nargs="+", type=Path)
-    print(table(parser.parse_args(argv).records))
+    try:
+        print(table(parser.parse_args(argv).records))
+    except (RecordError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

@@ -4,18 +4,21 @@ episodes) at every mark, with the environment steps trained so far; then one lin
 the minutes to 50 / 80 / 90 % (the first mark whose pick reached it), the final pick, the env steps
 the first pick at or above 90 % was trained on, and the run's env steps per second.
 
-Writing these tables by hand from the JSON is where figures got mistyped; this prints them.
+Writing these tables by hand from the JSON is where figures got mistyped; this prints them. Only
+version-2 records are read (`forcegrasp.cli.experiment.check_record`).
 
-    python bench/mark_table.py docs/recipe-runs/n-def60-camera-s1.json docs/recipe-runs/n-paper60-camera-s1.json
+    python bench/mark_table.py experiments/n-def60-camera-s1.json experiments/n-paper60-camera-s1.json
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import sys
 from pathlib import Path
 
 from ablation_table import steps_per_s, steps_to
+
+from forcegrasp.cli.experiment import RecordError, read_record
 
 RATES = (0.5, 0.8, 0.9)
 
@@ -84,7 +87,11 @@ def summary_table(records: list[dict]) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("records", nargs="+", type=Path)
-    records = [json.loads(p.read_text()) for p in parser.parse_args(argv).records]
+    try:
+        records = [read_record(p) for p in parser.parse_args(argv).records]
+    except (RecordError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(marks_table(records) + "\n\n" + summary_table(records))
     return 0
 

@@ -1,7 +1,8 @@
 """The robustness table from `forcegrasp experiment` records tested under several conditions: per
 run, the held-out success of the evaluator's pick at each mark under every test condition
 (`forcegrasp.conditions`), their mean, and the run's environment steps and steps per second.
-Only records made with ``evaluator.conditions`` take part.
+Only records made with ``evaluator.conditions`` take part; every file must be a version-2 experiment
+record (`forcegrasp.cli.experiment.check_record`).
 
     python bench/robustness_table.py experiments/*.json
     python bench/robustness_table.py --write docs/recipe.md experiments/*.json   # between its markers
@@ -10,9 +11,11 @@ Only records made with ``evaluator.conditions`` take part.
 from __future__ import annotations
 
 import argparse
-import json
 import re
+import sys
 from pathlib import Path
+
+from forcegrasp.cli.experiment import RecordError, read_record
 
 MARKER = "robustness-table"
 
@@ -67,7 +70,11 @@ def main(argv=None) -> int:
     parser.add_argument("records", nargs="+", type=Path)
     parser.add_argument("--write", type=Path, help="put the table between this page's markers instead of printing it")
     args = parser.parse_args(argv)
-    records = [r for r in (json.loads(p.read_text()) for p in args.records) if r.get("conditions") and "marks" in r]
+    try:
+        records = [r for r in map(read_record, args.records) if r.get("conditions")]
+    except (RecordError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     lines = rows(records)
     if args.write:
         write_between_markers(args.write, lines)

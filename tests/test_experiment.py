@@ -3,9 +3,11 @@
 import json
 import threading
 
+import pytest
+
 from forcegrasp.cli import experiment
 from forcegrasp.config import load_config
-from forcegrasp.cli.experiment import RECORD, online_at, plot_records, run_experiment
+from forcegrasp.cli.experiment import RECORD, RecordError, check_record, online_at, plot_records, run_experiment
 from forcegrasp.transport import free_tcp_port
 
 
@@ -51,6 +53,7 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path, monkeypatch):
     assert 0.0 <= online["success_rate"] <= 1.0 and 0 < online["step"] <= final["steps"]["latest"]
     on_disk = json.loads((run_dir / RECORD).read_text())
     assert on_disk["elapsed_s"] >= 45 and on_disk["marks"] == record["marks"]
+    assert list(on_disk)[:2] == ["format", "version"] and check_record(on_disk, "x") is on_disk
     # The clock reached the disk between marks too (a run killed outright loses at most
     # CLOCK_SAVE_S of it), and only ever forwards.
     between = {t for t in seen if all(abs(t - m["elapsed_s"]) > 0.5 for m in record["marks"]) and 0 < t < 45}
@@ -76,3 +79,25 @@ def test_online_figure_is_the_last_logged_at_or_before_the_snapshot():
     assert online_at(scalars, 300)["success_rate"] == 0.9
     assert online_at(scalars, 99) is None  # nothing logged yet: no figure rather than a later one
     assert online_at({}, 1000) is None
+
+
+def test_a_record_of_another_format_or_version_is_refused_naming_the_file_and_version(tmp_path, capsys):
+    """--plot, ship and resuming read only version-2 records: an older one (no 'format'/'version')
+    or another version is refused before anything starts."""
+    assert check_record({"format": "forcegrasp-experiment", "version": 2}, "r.json")
+    with pytest.raises(RecordError, match=r"r\.json: experiment record version 1 is not supported.*version 2"):
+        check_record({"format": "forcegrasp-experiment", "version": 1}, "r.json")
+    with pytest.raises(RecordError, match=r"r\.json: format 'other' is not an experiment record"):
+        check_record({"format": "other", "version": 2}, "r.json")
+    old = tmp_path / "old" / RECORD
+    old.parent.mkdir()
+    old.write_text(json.dumps({"label": "old", "seed": 0, "object": "camera", "marks": []}))
+    with pytest.raises(SystemExit) as exit_:
+        experiment.main(["--plot", str(tmp_path / "x.png"), str(old.parent)])
+    assert exit_.value.code == 2 and not (tmp_path / "x.png").exists()
+    err = capsys.readouterr().err
+    assert f"{old}: not a versioned experiment record" in err and "version 2" in err
+    config = load_config(env={}, overrides=["run.name=old", f"run.output_dir={tmp_path}"])
+    with pytest.raises(RecordError, match="not a versioned experiment record"):
+        run_experiment(config, minutes=1.0, mark_every=0.5, episodes=1, test_seed=0, label="old")
+    assert json.loads(old.read_text())["label"] == "old"  # left as it was

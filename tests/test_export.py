@@ -126,12 +126,13 @@ def test_observation_normalisation_is_baked_in(tmp_path):
     assert onnx_metadata(tmp_path / "norm.onnx") == meta
 
 
-def test_scaling_needs_a_recorded_action_range():
+def test_metadata_without_an_action_range_is_refused():
+    """Format version 2 records the action range: metadata without it describes no policy file."""
     weights, meta = load_policy_file(SHIPPED[0])
     meta.action_low = meta.action_high = None
-    with pytest.raises(ValueError, match="action_low"):
-        policy_to_onnx(weights, meta, scale_actions=True)
-    onnx.checker.check_model(policy_to_onnx(weights, meta))  # unscaled export needs no range
+    for scale_actions in (True, False):
+        with pytest.raises(ValueError, match="action_low is missing"):
+            policy_to_onnx(weights, meta, scale_actions=scale_actions)
 
 
 def test_bad_input_exits_2_and_writes_nothing(tmp_path, capsys):

@@ -1,7 +1,9 @@
 """bench/mark_table.py: minutes to a rate come from the first mark whose pick reached it, a mark a
-run never took stays empty, and the per-mark rows print the record's own figures."""
+run never took stays empty, the per-mark rows print the record's own figures, and a file that is not
+a version-2 experiment record is refused, naming it."""
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -14,7 +16,8 @@ spec.loader.exec_module(mark_table)
 
 def record(label, marks, seed=1):
     """marks: (minute, pick, latest, online) success rates; steps grow 20 k a mark."""
-    return {"label": label, "seed": seed, "object": "camera", "force_feedback": True, "episodes": 100,
+    return {"format": "forcegrasp-experiment", "version": 2,
+            "label": label, "seed": seed, "object": "camera", "force_feedback": True, "episodes": 100,
             "marks": [{"minute": m, "elapsed_s": 60 * m, "steps": {"latest": 20_000 * i, "best": 15_000 * i},
                        "test": {"best": {"success_rate": b}, "latest": {"success_rate": lt}},
                        "online": {"success_rate": o}} for i, (m, b, lt, o) in enumerate(marks, 1)]}
@@ -41,3 +44,14 @@ def test_tables_print_each_runs_own_marks_and_leave_missing_ones_empty():
     # short: 90 % at minute 10 from a pick of 30 k steps; 40 k steps in 600 s
     assert summary[2] == "| short, camera, seed 1 | 10 min | 10 min | 10 min | 91 % | 30 k | 67 |"
     assert summary[3] == "| long, camera, seed 2 | 10 min | 15 min | 15 min | 100 % | 45 k | 67 |"
+
+
+def test_records_are_read_only_at_version_2(tmp_path, capsys):
+    good, old = tmp_path / "good.json", tmp_path / "old.json"
+    good.write_text(json.dumps(record("x", [(5, 0.3, 0.2, 0.1)])))
+    assert mark_table.main([str(good)]) == 0
+    assert "| x, camera, seed 1 |" in capsys.readouterr().out
+    old.write_text(json.dumps({k: v for k, v in record("x", [(5, 0.3, 0.2, 0.1)]).items() if k not in ("format", "version")}))
+    assert mark_table.main([str(good), str(old)]) == 2
+    out = capsys.readouterr()
+    assert out.out == "" and "old.json: not a versioned experiment record" in out.err and "version 2" in out.err

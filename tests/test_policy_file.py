@@ -176,8 +176,42 @@ def test_wrong_version(saved):
         header["__metadata__"][METADATA_KEY] = json.dumps(meta)
 
     rewrite_header(saved, bump)
-    with pytest.raises(PolicyFileError, match=f"version {FORMAT_VERSION + 1} is not supported"):
+    with pytest.raises(PolicyFileError, match=f"version {FORMAT_VERSION + 1} is not supported.*newer ForceGrasp"):
         Policy.load(saved)
+
+
+@pytest.mark.parametrize("version", [1, 0])
+def test_an_older_format_version_is_refused_naming_it_and_how_to_migrate(saved, version):
+    """Version 2 requires the action range; a file of an older version is refused, not guessed at."""
+    assert FORMAT_VERSION == 2
+
+    def older(header):
+        meta = json.loads(header["__metadata__"][METADATA_KEY])
+        meta["format_version"] = version
+        header["__metadata__"][METADATA_KEY] = json.dumps(meta)
+
+    rewrite_header(saved, older)
+    with pytest.raises(PolicyFileError) as err:
+        Policy.load(saved)
+    message = str(err.value)
+    assert f"policy file format version {version} is not supported (this ForceGrasp reads version 2)" in message
+    assert "re-save" in message and "action_low/action_high" in message and "train the policy again" in message
+
+
+def test_version_2_requires_the_action_range(tmp_path, saved):
+    for name in ("action_low", "action_high"):
+        with pytest.raises(PolicyFileError, match=f"{name} is missing"):
+            save_policy_file(tmp_path / "x.policy", Policy.load(saved).weights(), metadata(**{name: None}))
+
+    def drop_range(header):  # a version-2 file without it (written by hand) is refused on reading too
+        meta = json.loads(header["__metadata__"][METADATA_KEY])
+        meta["action_high"] = None
+        header["__metadata__"][METADATA_KEY] = json.dumps(meta)
+
+    rewrite_header(saved, drop_range)
+    with pytest.raises(PolicyFileError, match="action_high is missing"):
+        Policy.load(saved)
+    assert not (tmp_path / "x.policy").exists()
 
 
 def test_foreign_safetensors_file(tmp_path):
@@ -243,3 +277,14 @@ def test_numpy_inference_samples_the_same_distribution_as_the_torch_actor(policy
     with torch.no_grad():
         torch_det = policy.actor.deterministic(torch.as_tensor(obs[:3])).numpy()
     np.testing.assert_allclose(policy(obs[:3]), torch_det, atol=1e-5)
+
+
+def test_every_policy_file_in_the_repository_is_of_the_current_version():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    files = sorted((root / "assets" / "policies").glob("*.safetensors")) + sorted((root / "tests" / "data").glob("*.safetensors"))
+    assert len(files) >= 13
+    for path in files:
+        meta = load_policy_file(path)[1]
+        assert meta.format_version == FORMAT_VERSION and len(meta.action_high) == meta.act_dim, path

@@ -44,7 +44,8 @@ def test_normalisation_statistics_travel_in_the_policy_file_and_apply_identicall
     sac.observe(obs)
     for _ in range(3):
         sac.update(buf.sample(64, np.random.default_rng(0)))
-    meta = PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16), obs_norm=True)
+    meta = PolicyMetadata([("obs", OBS)], [("action", ACT)], (16, 16), obs_norm=True,
+                          action_low=[-1.0] * ACT, action_high=[1.0] * ACT)
     path = sac.policy(meta).save(tmp_path / "p.safetensors")
     weights, loaded_meta = load_policy_file(path)
     assert loaded_meta.obs_norm
@@ -151,38 +152,55 @@ def test_action_step_sizes_are_a_lever_that_travels_with_the_policy(tmp_path):
         FunctionalGraspEnv("mug", max_h_step=float("nan"))
 
 
-def test_policy_files_of_earlier_step_sizes_still_run_at_their_own():
-    """The default step sizes grew 1.5x on 2026-12-03: a policy trained at the first sizes (a
-    committed run's pick) records them and is rebuilt at them; an env at today's default refuses it
-    clearly; a file recording no sizes at all is taken to be of the first sizes."""
-    from forcegrasp.task import ACTION_STEP_KEYS, ACTION_STEPS, FIRST_ACTION_STEPS, action_steps_of, check_policy
+#: Step sizes other than today's default: the first sizes (2/3 of it), the project's default once.
+FIRST_STEPS = {"max_translation_step": 0.004, "max_rotation_step": 0.02, "max_h_step": 0.025}
 
-    assert ACTION_STEPS == pytest.approx(tuple(1.5 * x for x in FIRST_ACTION_STEPS))
-    _, meta = load_policy_file(REPO / "docs" / "recipe-runs" / "n-fast-camera-s0-best.safetensors")
-    assert tuple(action_steps_of(meta).values()) == pytest.approx(FIRST_ACTION_STEPS)
-    assert FunctionalGraspEnv.for_policy(meta)._action_scale[[0, 3, 6]] == pytest.approx(FIRST_ACTION_STEPS)
-    check_policy(meta, "camera", True, dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS)))
+
+def _camera_policy_at(tmp_path, action_steps):
+    """A camera policy file (untrained weights) whose metadata records ``action_steps``."""
+    from forcegrasp.policy import Actor
+    from forcegrasp.task import policy_metadata
+
+    meta = policy_metadata("camera", True, (8, 8), action_steps=action_steps)
+    path = Policy.from_actor(Actor(meta.obs_dim, meta.act_dim, hidden=(8, 8)), meta, seed=0).save(tmp_path / "p.safetensors")
+    return load_policy_file(path)
+
+
+def test_policy_files_record_their_step_sizes_and_envs_are_rebuilt_at_them(tmp_path):
+    """A policy trained at other step sizes than the default records them in its file and is rebuilt
+    at them; an env at the default refuses it clearly; metadata that records none is refused, never
+    read as some default."""
+    from forcegrasp.task import ACTION_STEPS, action_steps_of, check_policy
+
+    _, meta = _camera_policy_at(tmp_path, FIRST_STEPS)
+    assert meta.action_high == pytest.approx([0.004] * 3 + [0.02] * 3 + [0.025])
+    assert action_steps_of(meta) == pytest.approx(FIRST_STEPS)
+    assert FunctionalGraspEnv.for_policy(meta)._action_scale[[0, 3, 6]] == pytest.approx(list(FIRST_STEPS.values()))
+    check_policy(meta, "camera", True, FIRST_STEPS)
     with pytest.raises(ValueError, match="action steps"):
         check_policy(meta, "camera", True)
     _, shipped = load_policy_file(REPO / "assets" / "policies" / "mug-ff-s0.safetensors")
-    check_policy(shipped, "mug", True)  # the shipped policies are of today's sizes
+    check_policy(shipped, "mug", True)  # the shipped policies are of the default sizes
+    assert tuple(action_steps_of(shipped).values()) == pytest.approx(ACTION_STEPS)
     unrecorded = dataclasses.replace(meta, action_high=None, action_low=None)
-    assert tuple(action_steps_of(unrecorded).values()) == FIRST_ACTION_STEPS
+    with pytest.raises(ValueError, match="records no action_high"):
+        action_steps_of(unrecorded)
+    with pytest.raises(ValueError, match="records no action steps"):
+        check_policy(unrecorded, "camera", True, FIRST_STEPS)
 
 
-def test_an_actor_refuses_weights_of_other_step_sizes():
+def test_an_actor_refuses_weights_of_other_step_sizes(tmp_path):
     """An actor started with other step sizes than the learner's would act at the wrong scale and
     send transitions that mean something else: it refuses the weights (the service counts them)."""
     from forcegrasp.acting import Actor
     from forcegrasp.config import load_config
-    from forcegrasp.task import action_steps_of
 
-    weights, meta = load_policy_file(REPO / "docs" / "recipe-runs" / "n-fast-camera-s0-best.safetensors")  # first sizes
+    weights, meta = _camera_policy_at(tmp_path, FIRST_STEPS)
     actor = Actor(load_config(env={}, overrides=["env.object=camera", "actor.envs_per_actor=1"]), "a", seed=0)
     with pytest.raises(ValueError, match="action steps"):
         actor.update(weights, meta, 1)
     assert actor.policy is None
-    first = [f"env.{k}={v}" for k, v in action_steps_of(meta).items()]
+    first = [f"env.{k}={v}" for k, v in FIRST_STEPS.items()]
     actor = Actor(load_config(env={}, overrides=["env.object=camera", "actor.envs_per_actor=1", *first]), "a", seed=0)
     assert actor.update(weights, meta, 1) and actor.policy is not None
 

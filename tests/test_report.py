@@ -91,7 +91,8 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     from forcegrasp.cli.experiment import effective_settings
 
     effective = effective_settings(load_config(env={}, overrides=[f"env.object={src.obj}", "actor.demo_episodes=2"]))
-    record = {"label": "x", "seed": 7, "test_seed": 0, "config": config, "effective": effective, "marks": [
+    record = {"format": "forcegrasp-experiment", "version": 2, "label": "x", "seed": 7, "test_seed": 0,
+              "config": config, "effective": effective, "marks": [
         {"minute": 5.0, "files": {"best": "best-005.0.safetensors"}, "steps": {"best": src.meta["picked_step"],
                                                                               "latest": 999999}, "test": {}}]}
     (run / "experiment.json").write_text(json.dumps(record))
@@ -105,6 +106,9 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert meta["recipe"]["sac"]["privileged_critic"] is True  # the recipe's settings, not only the overrides
     assert meta["recipe"]["sac"]["critic_layer_norm"] is True
     assert ship_main([str(run), "--mark", "10", "--out", str(out)]) == 2  # no such mark: a clear error
+    (run / "experiment.json").write_text(json.dumps({k: v for k, v in record.items() if k not in ("format", "version")}))
+    assert ship_main([str(run), "--out", str(tmp_path / "none")]) == 2  # a record of before versions: refused
+    assert not (tmp_path / "none").exists()
 
 
 def test_serve_hands_out_a_shipped_policy_like_an_evaluator(tmp_path):

@@ -47,9 +47,7 @@ def policy_to_onnx(weights: dict[str, np.ndarray], meta: PolicyMetadata, scale_a
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    meta.validate()
-    if scale_actions and (meta.action_low is None or meta.action_high is None):
-        raise PolicyFileError("the policy records no action_low/action_high, so its actions cannot be scaled")
+    meta.validate()  # the action range included: scale_actions needs it
     inits, nodes = [], []
 
     def const(name: str, value) -> str:

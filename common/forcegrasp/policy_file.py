@@ -6,7 +6,8 @@ Layout (a standard safetensors file, readable by any safetensors tool):
   actor MLP ``obs_dim -> hidden... -> 2 * act_dim`` (mean then log-std);
 * header ``__metadata__``: a single key ``"forcegrasp.policy"`` whose value is the JSON of
   `PolicyMetadata` (format version, observation/action layouts, object, force-feedback flag,
-  training steps, evaluation score, hidden sizes, action scaling, log-std bounds).
+  training steps, evaluation score, hidden sizes, action scaling, log-std bounds). Version 2: the
+  action scaling (``action_low``/``action_high``, the env units of actions -1 and +1) is required.
 
 One file (rather than a JSON sidecar) so a download or a network message can never pair weights
 with the wrong metadata. Reading never unpickles: safetensors is a JSON header plus raw little-endian
@@ -29,7 +30,7 @@ from safetensors import SafetensorError
 from safetensors.numpy import load as _st_load, save as _st_save
 
 FORMAT_NAME = "forcegrasp-policy"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 METADATA_KEY = "forcegrasp.policy"
 _MAX_HEADER = 16 * 1024 * 1024  # a policy header is a few kB; anything huge is corruption
 
@@ -78,8 +79,8 @@ class PolicyMetadata:
     force_feedback: bool = True
     training_steps: int = 0
     eval_score: float | None = None
-    action_low: list[float] | None = None  # env units that action -1 maps to (None: unscaled)
-    action_high: list[float] | None = None  # env units that action +1 maps to
+    action_low: list[float] | None = None  # env units that action -1 maps to (required in a file)
+    action_high: list[float] | None = None  # env units that action +1 maps to (required in a file)
     log_std_bounds: tuple[float, float] = (-20.0, 2.0)
     obs_norm: bool = False  # the file carries obs_mean/obs_std; the actor sees (obs - mean) / std, clipped
     extra: dict = field(default_factory=dict)  # free-form JSON (e.g. run id, seed)
@@ -112,8 +113,13 @@ class PolicyMetadata:
             raise PolicyFileError(f"not a ForceGrasp policy (metadata 'format' is not {FORMAT_NAME!r})")
         version = raw.get("format_version")
         if version != FORMAT_VERSION:
+            supported = f"policy file format version {version!r} is not supported (this ForceGrasp reads version {FORMAT_VERSION})"
+            if isinstance(version, int) and version > FORMAT_VERSION:
+                raise PolicyFileError(f"{supported}: it was written by a newer ForceGrasp")
             raise PolicyFileError(
-                f"policy file format version {version!r} is not supported (this ForceGrasp reads version {FORMAT_VERSION})"
+                f"{supported}: to use it, re-save its weights as version {FORMAT_VERSION}, whose metadata must "
+                "record action_low/action_high (the env units of actions -1 and +1: the action step sizes "
+                "it was trained with), or train the policy again"
             )
         raw.pop("format")
         known = set(cls.__dataclass_fields__)
@@ -138,7 +144,9 @@ class PolicyMetadata:
             problems.append(f"hidden sizes {self.hidden} must be positive")
         for name in ("action_low", "action_high"):
             value = getattr(self, name)
-            if value is not None and len(value) != self.act_dim:
+            if value is None:
+                problems.append(f"{name} is missing (format version {FORMAT_VERSION} records the action scaling)")
+            elif len(value) != self.act_dim:
                 problems.append(f"{name} has {len(value)} entries for {self.act_dim} action dimensions")
         if len(self.log_std_bounds) != 2:
             problems.append(f"log_std_bounds {self.log_std_bounds} must be (min, max)")

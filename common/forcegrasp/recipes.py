@@ -13,16 +13,14 @@ from forcegrasp.sac_config import SACConfig, check_value
 #: "paper": the paper's settings (one update per environment step, a critic that sees what the
 #: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines:
 #: a quarter update per step, the asymmetric critic, and critic LayerNorm (with the demonstrations
-#: of `OBJECT_DEMOS`: LayerNorm alone slowed the spray bottle 2-3x, with them every object tried
-#: passed 90 % by its 5-minute mark; docs/recipe.md, 2026-12-05).
+#: of `OBJECT_DEMOS`).
 RECIPES: dict[str, dict] = {
     "paper": {},
     "fast": {"updates_per_step": 0.25, "privileged_critic": True, "critic_layer_norm": True},
 }
 
 #: Per-object settings on top of a recipe, under the [learner.sac] overrides: for a lever that helps
-#: one object and costs another. None today: critic LayerNorm was the mug's alone in the twenty-first
-#: session, until with demonstrations it held on every object (docs/recipe.md, 2026-12-05).
+#: one object and costs another (none at present).
 OBJECT_RECIPES: dict[str, dict[str, dict]] = {"fast": {}}
 
 
@@ -38,22 +36,10 @@ def recipe_settings(recipe: str, object_name: str) -> dict:
 OBJECT_DEMOS: dict[str, int] = {"mug": 4, "camera": 4, "power_drill": 4, "spray_bottle": 4}
 
 
-#: The presets and default demonstrations as they were for every run record without `effective`
-#: (made before 2026-12-05): such a record is read as trained with these, whatever today's default is.
-EARLIER_RECIPES: dict[str, dict] = {"paper": {}, "fast": {"updates_per_step": 0.25, "privileged_critic": True}}
-EARLIER_DEMOS: dict[str, int] = {"mug": 4}
-
-
-def earlier_demo_episodes(object_name: str, configured: int) -> int:
-    """What ``actor.demo_episodes = configured`` meant for a record without `effective`."""
-    return demo_episodes(object_name, configured, EARLIER_DEMOS)
-
-
-def demo_episodes(object_name: str, configured: int, per_object: dict[str, int] | None = None) -> int:
+def demo_episodes(object_name: str, configured: int) -> int:
     """Demonstrations per env that ``actor.demo_episodes = configured`` means for this object
-    (a negative number: the object's entry in ``per_object``, today's ``OBJECT_DEMOS`` unless given)."""
-    table = OBJECT_DEMOS if per_object is None else per_object
-    return table.get(object_name, 0) if configured < 0 else int(configured)
+    (a negative number: the object's entry in `OBJECT_DEMOS`)."""
+    return OBJECT_DEMOS.get(object_name, 0) if configured < 0 else int(configured)
 
 
 def sac_config(config) -> SACConfig:

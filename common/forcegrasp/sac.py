@@ -269,9 +269,10 @@ class SAC:
 
     def policy(self, metadata: PolicyMetadata | None = None, device="cpu") -> Policy:
         """A standalone copy of the current actor, ready to save or deploy."""
-        if metadata is None:
+        if metadata is None:  # unscaled: actions in [-1, 1] are the env's own units
             metadata = PolicyMetadata([("obs", self.obs_dim)], [("action", self.act_dim)], self.config.hidden,
-                                      training_steps=self.num_updates, obs_norm=self.config.obs_norm)
+                                      training_steps=self.num_updates, obs_norm=self.config.obs_norm,
+                                      action_low=[-1.0] * self.act_dim, action_high=[1.0] * self.act_dim)
         return Policy.from_actor(self.deployed_actor, metadata, device=device)
 
     # -- checkpoints ----------------------------------------------------------------------------

@@ -59,12 +59,8 @@ PRIVILEGED_LAYOUT = (
 PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
 
 #: Largest change per step of the base translation targets (m), rotation targets (rad) and h: the
-#: recipe's default, 1.5x the first sizes (docs/recipe.md: faster in two camera screens, a tie with
-#: the first sizes in the confirmation runs made at them).
+#: recipe's default (docs/recipe.md).
 ACTION_STEPS = (0.006, 0.03, 0.0375)
-#: The first sizes (the project's default until 2026-12-03): what a policy file recording no
-#: ``action_high`` was trained with.
-FIRST_ACTION_STEPS = (0.004, 0.02, 0.025)
 #: Their names as FunctionalGraspEnv keywords and `env.*` configuration keys.
 ACTION_STEP_KEYS = ("max_translation_step", "max_rotation_step", "max_h_step")
 
@@ -122,11 +118,11 @@ def action_scale(max_translation_step: float = ACTION_STEPS[0], max_rotation_ste
 
 
 def action_steps_of(meta: PolicyMetadata) -> dict[str, float]:
-    """The action step sizes a policy was trained with (FunctionalGraspEnv keywords); the paper-era
-    first sizes for a file that records none (files from before they were recorded)."""
-    if meta.action_high is None:
-        return dict(zip(ACTION_STEP_KEYS, FIRST_ACTION_STEPS))
+    """The action step sizes a policy was trained with (FunctionalGraspEnv keywords), read from the
+    ``action_high`` its file records."""
     high = meta.action_high
+    if high is None:
+        raise ValueError("the policy records no action_high, so the action step sizes it was trained with are unknown")
     return dict(zip(ACTION_STEP_KEYS, (float(high[0]), float(high[3]), float(high[6]))))
 
 
@@ -180,7 +176,9 @@ def check_policy(meta: PolicyMetadata, object_name: str | None = None, force_fee
 
 def check_action_steps(meta: PolicyMetadata, action_steps: dict | None = None) -> None:
     """Raise ValueError when a policy records other action step sizes than an env's (``action_steps``:
-    its step-size keywords, default `ACTION_STEPS`); a file that records none passes."""
+    its step-size keywords, default `ACTION_STEPS`) or records none."""
     scale = action_scale(**(action_steps or {}))
-    if meta.action_high is not None and not np.allclose(meta.action_high, scale):
+    if meta.action_high is None:
+        raise ValueError(f"policy records no action steps (action_high); the env uses {scale.tolist()}")
+    if not np.allclose(meta.action_high, scale):
         raise ValueError(f"policy was trained with action steps {meta.action_high}, the env uses {scale.tolist()}")

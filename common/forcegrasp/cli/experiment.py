@@ -9,9 +9,11 @@ freezes two policy files into ``<run>/marks/``:
 
 When training stops, each frozen file is tested on the same ``--episodes`` held-out placements
 (the ``"test"`` stream of seed ``--test-seed``, never used to pick a checkpoint), deterministic
-actions, on every core. The record, ``<run>/experiment.json``, holds the configuration, the marks,
-their steps and scores; ``forcegrasp experiment --plot OUT.png RUN...`` overlays several records
-(success against wall-clock minutes and against environment steps).
+actions, on every core. The record, ``<run>/experiment.json`` (``"format": "forcegrasp-experiment"``,
+``"version": 2``), holds the configuration, the settings the run trained with (``effective``), the
+marks, their steps and scores; ``forcegrasp experiment --plot OUT.png RUN...`` overlays several
+records (success against wall-clock minutes and against environment steps). A record of another
+format or version is refused (`check_record`).
 
 Resumable: the same command continues an interrupted experiment: training resumes from the
 learner's checkpoint, wall-clock counts on from where it stopped, marks already taken are kept
@@ -27,6 +29,7 @@ import argparse
 import json
 import os
 import shutil
+import sys
 import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -36,14 +39,43 @@ from forcegrasp.report import FRESH_WORKERS
 from forcegrasp.rundir import RunDir
 
 RECORD = RunDir(".").experiment.name
+#: What a record says it is, as its first two keys; readers refuse anything else (`check_record`).
+RECORD_FORMAT = "forcegrasp-experiment"
+RECORD_VERSION = 2
 #: Seconds between saves of the wall-clock spent (a killed run resumes at most this early).
 CLOCK_SAVE_S = 10.0
 
 
 # ---------------------------------------------------------------------------------- the record
+class RecordError(ValueError):
+    """A file that is not an experiment record this ForceGrasp reads, with the reason in the message."""
+
+
+def check_record(record, source) -> dict:
+    """The record, if it is a `RECORD_FORMAT` record of `RECORD_VERSION`; else a `RecordError` naming
+    ``source`` (the file) and the version found."""
+    wanted = f"this ForceGrasp reads {RECORD_FORMAT!r} records of version {RECORD_VERSION}"
+    if not isinstance(record, dict) or ("format" not in record and "version" not in record):
+        raise RecordError(f"{source}: not a versioned experiment record (no 'format' and 'version' keys); {wanted}")
+    if record.get("format") != RECORD_FORMAT:
+        raise RecordError(f"{source}: format {record.get('format')!r} is not an experiment record; {wanted}")
+    if record.get("version") != RECORD_VERSION:
+        raise RecordError(f"{source}: experiment record version {record.get('version')!r} is not supported; {wanted}")
+    return record
+
+
+def read_record(path: Path) -> dict:
+    """An experiment record file, checked (`check_record`); a `RecordError` for invalid JSON too."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise RecordError(f"{path}: not JSON ({exc})") from None
+    return check_record(record, path)
+
+
 def load_record(run_dir: Path) -> dict | None:
     path = RunDir(run_dir).experiment
-    return json.loads(path.read_text()) if path.is_file() else None
+    return read_record(path) if path.is_file() else None
 
 
 def save_record(run_dir: Path, record: dict) -> None:
@@ -227,8 +259,8 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
     run_dir = RunDir.of(config).root
     run_dir.mkdir(parents=True, exist_ok=True)
     record = load_record(run_dir) or {
-        "label": label, "seed": config.run.seed, "object": config.env.object,
-        "force_feedback": config.env.force_feedback, "minutes": minutes, "mark_every": mark_every,
+        "format": RECORD_FORMAT, "version": RECORD_VERSION,
+        "label": label, "seed": config.run.seed, "object": config.env.object, "force_feedback": config.env.force_feedback, "minutes": minutes, "mark_every": mark_every,
         "episodes": episodes, "test_seed": test_seed, "elapsed_s": 0.0, "config": config.to_dict(),
         "effective": effective_settings(config), "marks": [],
         # the test conditions of the marks (forcegrasp.conditions): the evaluator's, so that marks
@@ -357,16 +389,20 @@ def main(argv=None) -> int:
     parser.add_argument("runs", nargs="*", help="with --plot: run folders (or experiment.json files)")
     args = parser.parse_args(argv)
     if args.plot:
-        records = []
-        for r in args.runs:
-            p = Path(r)
-            records.append(json.loads((p if p.is_file() else p / RECORD).read_text()))
+        try:
+            records = [read_record(p if p.is_file() else p / RECORD) for p in map(Path, args.runs)]
+        except RecordError as exc:
+            parser.error(str(exc))
         print(f"wrote {plot_records(records, Path(args.plot))}")
         return 0
     config = config_from_args(args)
-    run_experiment(config, args.minutes, args.mark_every, args.episodes, args.test_seed,
-                   args.label or config.run.name, evaluator=not args.no_evaluator, workers=args.workers,
-                   log=lambda m: print(m, flush=True))
+    try:
+        run_experiment(config, args.minutes, args.mark_every, args.episodes, args.test_seed,
+                       args.label or config.run.name, evaluator=not args.no_evaluator, workers=args.workers,
+                       log=lambda m: print(m, flush=True))
+    except RecordError as exc:  # the run folder holds a record this version does not resume
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 

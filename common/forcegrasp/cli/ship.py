@@ -21,7 +21,6 @@ from pathlib import Path
 def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
     from forcegrasp.cli.experiment import load_record, test_files
     from forcegrasp.policy_file import load_policy_file
-    from forcegrasp.recipes import earlier_demo_episodes
 
     record = load_record(run_dir)
     if record is None:
@@ -42,7 +41,7 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     shutil.copyfile(src, dst.with_suffix(".tmp"))
     os.replace(dst.with_suffix(".tmp"), dst)
     sac = record["config"]["learner"]
-    effective = record.get("effective") or {}  # what the run trained with (records since 2026-12-05)
+    effective = record["effective"]  # what the run trained with
     sidecar = {
         "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "seed": record["seed"],
         "picked_step": int(meta.training_steps),
@@ -54,11 +53,9 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
         "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
-                             "demo_episodes": effective.get("demo_episodes") if "demo_episodes" in effective
-                             else earlier_demo_episodes(meta.object_name, record["config"]["actor"].get("demo_episodes", 0))},
+                             "demo_episodes": effective["demo_episodes"]},
                    # every SAC setting the run trained with, its recipe's per-object ones included
-                   # (earlier records hold only the overrides above)
-                   "sac": effective.get("sac")},
+                   "sac": effective["sac"]},
         "env": record["config"]["env"],
         "run": {"name": record["config"]["run"]["name"], "label": record.get("label"),
                 "machine": "2 CPU cores, no GPU; learner, 2 actors x 8 envs and the evaluator"},
