@@ -3,6 +3,9 @@ transitions packed into batches for the learner. No network: the actor service s
 over Zenoh and feeds it the learner's broadcasts; ``forcegrasp train`` hands them to a learner in
 the same process.
 
+- With ``env.objects`` its envs step several objects (`forcegrasp.multi_object.assign_objects`: env
+  ``j`` of actor ``i`` steps ``objects[(i * envs_per_actor + j) % len(objects)]``); every transition
+  and ended episode carries its object's index into the batch's ``objects`` names (statistics only).
 - With ``actor.demo_episodes`` (default: the recipe's number for the object,
   `forcegrasp.recipes.OBJECT_DEMOS`) each env first plays that many episodes of the scripted approach
   (`forcegrasp.scripted`) *told the true object offset*: demonstrations that put the success
@@ -20,6 +23,8 @@ the same process.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from forcegrasp import task
@@ -28,6 +33,7 @@ from forcegrasp.nstep import NStepAccumulator
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.protocol import TransitionBatch
+from forcegrasp.multi_object import actor_index, assign_objects, run_objects
 from forcegrasp.runtime import make_env
 from forcegrasp.recipes import demo_episodes, sac_config
 from forcegrasp.scripted import ScriptedApproach
@@ -40,7 +46,14 @@ class Actor:
         self.config = config
         self.actor_id = actor_id
         n = config.actor.envs_per_actor
-        self.envs = [make_env(config) for _ in range(n)]
+        self.objects = run_objects(config.env)  # the batch's object names; env i steps env_objects[i]
+        self.env_objects = assign_objects(self.objects, n, actor_index(actor_id))
+        self._object_ix = np.array([self.objects.index(o) for o in self.env_objects], np.uint8)
+        self.envs = [make_env(config, o) for o in self.env_objects]
+        if len(set(self.env_objects)) < len(self.objects):  # fine if other actors step the rest
+            logging.getLogger("forcegrasp.actor").warning(
+                "actor %s: %d envs step %s of the %d objects %s", actor_id, n,
+                ", ".join(dict.fromkeys(self.env_objects)), len(self.objects), ", ".join(self.objects))
         base_seed = config.run.seed + 1000 if seed is None else seed
         self.rng = np.random.default_rng(base_seed)
         self.obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
@@ -55,10 +68,12 @@ class Actor:
         self.episodes = 0
         self.successes = 0
         self._pending: list = []
-        self._ended: list[tuple[float, int, bool]] = []
+        self._pending_objects: list[int] = []  # the object index of each pending transition
+        self._ended: list[tuple[float, int, bool, int]] = []
+        self.by_object = {o: {"episodes": 0, "successes": 0} for o in self.objects}
         self._returns = np.zeros(n)
         self._lengths = np.zeros(n, dtype=np.int64)
-        self._demos_left = [demo_episodes(config.env.object, config.actor.demo_episodes)] * n
+        self._demos_left = [demo_episodes(o, config.actor.demo_episodes) for o in self.env_objects]
         self._demo = [self._new_demo(i) for i in range(n)]
         self.demo_episodes = self.demo_successes = 0
 
@@ -105,8 +120,10 @@ class Actor:
             next_obs, reward, terminated, truncated, info = env.step(actions[i])
             next_priv = env.privileged_state() if self.privileged else None
             priv = self.priv[i].copy() if self.privileged else None
-            self._pending.extend(self.nstep[i].push(self.obs[i].copy(), actions[i], reward, next_obs, terminated,
-                                                    truncated, priv, next_priv))
+            out = self.nstep[i].push(self.obs[i].copy(), actions[i], reward, next_obs, terminated, truncated, priv,
+                                     next_priv)
+            self._pending.extend(out)
+            self._pending_objects.extend([self._object_ix[i]] * len(out))
             self._returns[i] += reward
             self._lengths[i] += 1
             if terminated or truncated:
@@ -115,9 +132,12 @@ class Actor:
                     self.demo_episodes += 1
                     self.demo_successes += bool(info["success"])
                 else:
-                    self._ended.append((self._returns[i], int(self._lengths[i]), bool(info["success"])))
+                    self._ended.append((self._returns[i], int(self._lengths[i]), bool(info["success"]),
+                                        int(self._object_ix[i])))
                     self.episodes += 1
                     self.successes += bool(info["success"])
+                    self.by_object[self.env_objects[i]]["episodes"] += 1
+                    self.by_object[self.env_objects[i]]["successes"] += bool(info["success"])
                 self._returns[i], self._lengths[i] = 0.0, 0
                 next_obs, _ = env.reset()
                 self._demo[i] = self._new_demo(i)
@@ -144,18 +164,20 @@ class Actor:
             extras["privileged"] = np.array([t.extra for t in p], np.float32)
             extras["next_privileged"] = np.array([t.next_extra for t in p], np.float32)
         if self._ended:
-            r, n, s = zip(*self._ended)
+            r, n, s, o = zip(*self._ended)
             extras.update(episode_returns=np.array(r, np.float32), episode_lengths=np.array(n, np.int32),
-                          episode_successes=np.array(s, bool))
-        self._pending, self._ended = [], []
+                          episode_successes=np.array(s, bool), episode_objects=np.array(o, np.uint8))
+        objects = np.array(self._pending_objects, np.uint8)
+        self._pending, self._pending_objects, self._ended = [], [], []
         return TransitionBatch(actor_id=self.actor_id, seq=0, policy_version=self.policy_version, obs=obs,
                                action=action, reward=reward, next_obs=next_obs, terminated=term, truncated=trunc,
-                               **extras)
+                               objects=list(self.objects), object_index=objects, **extras)
 
     def stats(self) -> dict:
         return {"steps": self.steps, "episodes": self.episodes, "successes": self.successes,
                 "demo_episodes": self.demo_episodes,
-                "demo_successes": self.demo_successes, "policy_version": self.policy_version}
+                "demo_successes": self.demo_successes, "policy_version": self.policy_version,
+                **({"objects": {o: dict(v) for o, v in self.by_object.items()}} if len(self.objects) > 1 else {})}
 
     def close(self) -> None:
         for env in self.envs:

@@ -54,7 +54,10 @@ class RunConfig:
 class EnvConfig:
     """The FunctionalGrasp environment every actor and the evaluator build."""
 
-    object: str = _f("mug", "object name (a file under assets/objects/)")
+    object: str = _f("mug", "object name (a file under assets/objects/); with env.objects, its first entry")
+    objects: list[str] = _f([], "objects trained in one run by one learner (forcegrasp.multi_object: env j of actor i "
+                                "steps objects[(i * envs_per_actor + j) % len]; the evaluator scores each; empty: "
+                                "env.object alone)")
     force_feedback: bool = _f(True, "observe joint torques (false: the paper's ablation, 53-dim obs)")
     mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
@@ -158,6 +161,8 @@ class EvaluatorConfig:
     eval_episodes: int = _f(10, "episodes per periodic evaluation", min=1)
     top_k: int = _f(5, "best checkpoints kept", min=1)
     final_rank_episodes: int = _f(100, "episodes per top-k checkpoint in the final ranking", min=1)
+    object_aggregate: str = _f("min", "how a checkpoint's per-object scores (with env.objects) make its score: "
+                                      "min (as good as its worst object) or mean", choices=("min", "mean"))
     conditions: list[str] = _f([], "test conditions a checkpoint is scored on, each with eval_episodes and "
                                    "final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: "
                                    "5x, 1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's env")
@@ -319,11 +324,16 @@ def _check_cross_fields(config: Config) -> None:
         raise ConfigError(f"run.name: {exc.detail}") from None
     from forcegrasp.objects import list_objects
 
-    if config.env.object not in list_objects():
-        # Fail here, before any service starts: a cluster of actors that each die on an unknown
-        # object and are restarted forever says less than one line.
-        raise ConfigError(f"env.object: unknown object {config.env.object!r}; valid objects: "
-                          f"{', '.join(list_objects())}")
+    if config.env.objects:  # one run, several objects: env.object names the first (forcegrasp.multi_object)
+        if len(set(config.env.objects)) != len(config.env.objects) or len(config.env.objects) > 255:
+            raise ConfigError(f"env.objects = {config.env.objects!r}: at most 255 objects, each named once")
+        config.env.object = config.env.objects[0]
+    for name in config.env.objects or [config.env.object]:
+        if name not in list_objects():
+            # Fail here, before any service starts: a cluster of actors that each die on an unknown
+            # object and are restarted forever says less than one line.
+            raise ConfigError(f"env.object{'s' if config.env.objects else ''}: unknown object {name!r}; valid "
+                              f"objects: {', '.join(list_objects())}")
     for key, low in (("mass_scale_range", 0.0), ("torque_noise_range", None)):
         span = getattr(config.env, key)
         if span and (len(span) != 2 or span[0] > span[1] or span[0] < 0 or (low is not None and span[0] <= low)):

@@ -74,6 +74,7 @@ class EvalResult:
     seconds: float = 0.0
     returns: list[float] = field(default_factory=list)
     conditions: dict = field(default_factory=dict)  # per test condition, when several were mixed
+    objects: dict = field(default_factory=dict)  # per object, when several were scored (forcegrasp.multi_object)
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -18,6 +18,7 @@ import numpy as np
 
 from forcegrasp import task
 from forcegrasp.config import Config
+from forcegrasp.multi_object import run_objects
 from forcegrasp.policy import weights_of
 from forcegrasp.protocol import TransitionBatch, Weights
 from forcegrasp.replay import ReplayBuffer
@@ -44,6 +45,9 @@ class Learner:
         self.obs_dim = task.obs_dim(config.env.force_feedback, config.env.torque_history, config.env.proprioception)
         self.priv_dim = task.PRIV_DIM if self.sac_cfg.privileged_critic else 0
         self.recent_episodes: collections.deque = collections.deque(maxlen=100)  # (return, length, success)
+        self.objects = run_objects(config.env)  # the run's objects: batches naming another are refused
+        self.by_object = {o: collections.deque(maxlen=100) for o in self.objects}  # success of the last 100 each
+        self.object_episodes = dict.fromkeys(self.objects, 0)
         self.episode_count = 0
         self.ingested = 0
         self.policy_version = 0
@@ -96,8 +100,13 @@ class Learner:
                               batch.horizon, batch.privileged, batch.next_privileged)
         self.ingested += batch.n
         if batch.has_episodes:
-            for r, n, s in zip(batch.episode_returns, batch.episode_lengths, batch.episode_successes):
+            names = ([batch.objects[i] for i in batch.episode_objects] if batch.episode_objects is not None
+                     else [None] * len(batch.episode_returns))  # a sender that names no object
+            for r, n, s, o in zip(batch.episode_returns, batch.episode_lengths, batch.episode_successes, names):
                 self.recent_episodes.append((float(r), int(n), bool(s)))
+                if o in self.by_object:
+                    self.by_object[o].append(bool(s))
+                    self.object_episodes[o] += 1
                 self.episode_count += 1
                 if self.on_episode is not None:
                     self.on_episode(float(r), bool(s), self.ingested)
@@ -136,12 +145,21 @@ class Learner:
             return None
         return lead - self.updates_due / self.sac_cfg.updates_per_step
 
+    def foreign_objects(self, batch: TransitionBatch) -> list[str]:
+        """The objects a batch names that this run does not train (the learner refuses such a batch)."""
+        return sorted(set(batch.objects or ()) - set(self.objects))
+
     def episode_stats(self) -> dict:
-        """Mean return and success over the last 100 episodes the actors finished (online figures)."""
+        """Mean return and success over the last 100 episodes the actors finished (online figures);
+        with several objects, each object's success over its own last 100 (``objects``)."""
         episodes = list(self.recent_episodes)
-        return {"episodes": self.episode_count,
-                "return_mean": float(np.mean([e[0] for e in episodes])) if episodes else None,
-                "success_rate": float(np.mean([e[2] for e in episodes])) if episodes else None}
+        out = {"episodes": self.episode_count,
+               "return_mean": float(np.mean([e[0] for e in episodes])) if episodes else None,
+               "success_rate": float(np.mean([e[2] for e in episodes])) if episodes else None}
+        if len(self.objects) > 1:
+            out["objects"] = {o: {"episodes": self.object_episodes[o],
+                                  "success_rate": float(np.mean(d)) if d else None} for o, d in self.by_object.items()}
+        return out
 
     def stats(self, elapsed: float, updates0: int, ingested0: int) -> dict:
         """Counters, and rates over the ``elapsed`` seconds since ``updates0``/``ingested0``."""
@@ -168,6 +186,9 @@ class Learner:
         for key in ("return_mean", "success_rate"):
             if values[key] is not None:
                 writer.add_scalar(f"actors/{key}_100", values[key], step)
+        for name, v in values.get("objects", {}).items():
+            if v["success_rate"] is not None:
+                writer.add_scalar(f"actors/{name}/success_rate_100", v["success_rate"], step)
         for k, v in metrics.items():
             writer.add_scalar(f"sac/{k}", v, step)
 

@@ -6,7 +6,9 @@ return, the success rate is recorded too). A snapshot good enough for the top k
 (``evaluator.top_k``, kept on disk by :mod:`forcegrasp.topk`) is scored again on
 ``evaluator.final_rank_episodes`` ranking placements, and the best member by that score is the
 policy a user gets. Placements are fixed by ``run.seed``; episodes can be logged to MCAP under
-``<run>/evaluator/episodes/<step>/``.
+``<run>/evaluator/episodes/<step>/``. A run of several objects (``env.objects``) scores each object
+under each test condition and ranks on ``evaluator.object_aggregate`` over the objects
+(`forcegrasp.multi_object`); its logs are ``eval-<object>-<i>.mcap``.
 
 No network: the evaluator service adds announcements, serving and stats;
 ``forcegrasp train`` runs the same role in its own process.
@@ -29,15 +31,17 @@ from typing import Callable
 
 from forcegrasp.config import Config
 from forcegrasp.evaluation import EvalResult, Interrupted, Placement, evaluate, placements
+from forcegrasp.multi_object import check_objects, run_objects, score_grid
 from forcegrasp.policy_file import PolicyFileError, PolicyMetadata, load_policy_bytes, policy_to_bytes
 from forcegrasp.rundir import RunDir, policy_file_name, step_of
-from forcegrasp.task import FIRST_ACTION_STEPS, check_policy
+from forcegrasp.task import check_policy
 from forcegrasp.topk import MAX_POLICY_BYTES, Member, TopK, sha256
 
 log = logging.getLogger("forcegrasp.evaluator")
 
 #: ``score_fn(policy, weights, metadata, placements, kind, step, condition=None) -> EvalResult``; kind is
-#: "eval" or "rank", condition a `forcegrasp.conditions` name or None (the run's own env).
+#: "eval" or "rank", condition a `forcegrasp.conditions` name or None (the run's own env); a run of
+#: several objects passes the object too (keyword ``object``).
 ScoreFn = Callable[..., EvalResult]
 
 
@@ -78,12 +82,15 @@ class Ranker:
         # Test conditions (forcegrasp.conditions), each with its own env and placements; None is
         # the run's own env settings, the one condition when evaluator.conditions is empty.
         self.conditions: list[str | None] = list(ev.conditions) or [None]
+        self.objects = run_objects(config.env)  # each with its envs and placements: keys (object, condition)
+        self.object_keys: list[str | None] = self.objects if len(self.objects) > 1 else [None]
         self.envs: dict = {}
         self.eval_places, self.rank_places = {}, {}
-        for c in self.conditions:
-            env = self._ensure_env(c)
-            self.eval_places[c] = placements(config.run.seed, ev.eval_episodes, env.jitter, "eval", env.is_clear)
-            self.rank_places[c] = placements(config.run.seed, ev.final_rank_episodes, env.jitter, "rank", env.is_clear)
+        for key in ((o, c) for o in self.object_keys for c in self.conditions):
+            env = self._ensure_env(key[1], key[0])
+            self.eval_places[key] = placements(config.run.seed, ev.eval_episodes, env.jitter, "eval", env.is_clear)
+            self.rank_places[key] = placements(config.run.seed, ev.final_rank_episodes, env.jitter, "rank",
+                                               env.is_clear)
         self.top = TopK(self.files.top, ev.top_k, run=config.run.name)
         self.log_episodes = log_episodes
         self.mcap_backend = mcap_backend
@@ -129,17 +136,17 @@ class Ranker:
         e, ev = self.config.env, self.config.evaluator
         return {"object": e.object, "force_feedback": e.force_feedback, "mass_scale": e.mass_scale,
                 "jitter": e.jitter, "torque_noise_std": e.torque_noise_std, "max_steps": e.max_steps,
-                # recorded only when not the first sizes, so that earlier runs' scores stay valid
-                **({} if tuple(e.action_steps().values()) == FIRST_ACTION_STEPS else e.action_steps()),
+                **e.action_steps(),
                 **({"torque_history": e.torque_history} if e.torque_history else {}),
                 **({"proprioception": e.proprioception} if e.proprioception != "measured" else {}),
                 "seed": self.config.run.seed, "eval_episodes": ev.eval_episodes,
                 "final_rank_episodes": ev.final_rank_episodes,
                 **({"conditions": list(ev.conditions)} if ev.conditions else {}),
+                **({"objects": self.objects, "object_aggregate": ev.object_aggregate} if self.object_keys[0] else {}),
                 # the placements themselves: a change in how they are drawn (e.g. which offsets
                 # are clear of the hand) invalidates scores as surely as a changed setting
                 "placements": hashlib.sha256(json.dumps(
-                    [[p.seed, *p.offset] for c in self.conditions for p in self.eval_places[c] + self.rank_places[c]]
+                    [[p.seed, *p.offset] for k in self.eval_places for p in self.eval_places[k] + self.rank_places[k]]
                 ).encode()).hexdigest()[:16]}
 
     def load(self) -> None:
@@ -199,35 +206,31 @@ class Ranker:
         return chosen
 
     # ------------------------------------------------------------------ evaluating
-    def _ensure_env(self, condition: str | None = None):
-        """The env of a test condition (None: the run's own settings), built once."""
-        if condition not in self.envs:
+    def _ensure_env(self, condition: str | None = None, obj: str | None = None):
+        """The env of a test condition (None: the run's own settings) and object (None: the run's
+        one object), built once."""
+        if (obj, condition) not in self.envs:
             from forcegrasp.conditions import env_kwargs
             from forcegrasp.runtime import make_env
 
-            self.envs[condition] = make_env(self.config, **(env_kwargs(condition) if condition else {}))
-        return self.envs[condition]
+            self.envs[obj, condition] = make_env(self.config, obj, **(env_kwargs(condition) if condition else {}))
+        return self.envs[obj, condition]
 
     def _score(self, policy, weights, meta: PolicyMetadata, kind: str, step: int) -> EvalResult:
-        """Score under every test condition; several are mixed by their plain mean, and the result
-        keeps each condition's figures (``conditions``)."""
+        """Score under every test condition, on every object: several conditions mix by their plain
+        mean (``conditions``), several objects by ``evaluator.object_aggregate`` (``objects``)."""
         places = self.eval_places if kind == "eval" else self.rank_places
-        parts = {c: self._score_fn(policy, weights, meta, places[c], kind, step, condition=c) for c in self.conditions}
-        if self.conditions == [None]:
-            return parts[None]
-        from forcegrasp.conditions import ConditionScore, mix
 
-        m = mix({c: ConditionScore(r.score, r.success_rate, r.episodes) for c, r in parts.items()})
-        return EvalResult(score=m.score, success_rate=m.success_rate, episodes=m.episodes,
-                          steps=sum(r.steps for r in parts.values()), seconds=sum(r.seconds for r in parts.values()),
-                          returns=[x for r in parts.values() for x in r.returns],
-                          conditions={c: {"score": r.score, "success_rate": r.success_rate, "episodes": r.episodes}
-                                      for c, r in parts.items()})
+        def one(obj, c):
+            kw = {"condition": c} if obj is None else {"condition": c, "object": obj}
+            return self._score_fn(policy, weights, meta, places[obj, c], kind, step, **kw)
+
+        return score_grid(one, self.object_keys, self.conditions, self.config.evaluator.object_aggregate)
 
     def _rollouts(self, policy, weights, meta: PolicyMetadata, places: list[Placement], kind: str,
-                  step: int, condition: str | None = None) -> EvalResult:
-        env = self._ensure_env(condition)
-        prefix = kind if condition is None else f"{kind}-{condition}"
+                  step: int, condition: str | None = None, object: str | None = None) -> EvalResult:  # noqa: A002
+        env = self._ensure_env(condition, object)
+        prefix = "-".join(x for x in (kind, object, condition) if x)
         log_dir = None
         if self.log_episodes:
             log_dir = self.episodes_dir / f"{step:09d}"
@@ -236,7 +239,7 @@ class Ranker:
                 leftover.unlink(missing_ok=True)
         meta_fields = {"run": self.config.run.name, "checkpoint_step": step, "policy_version":
                        meta.extra.get("policy_version", 0), "checkpoint": policy_file_name(step),
-                       "condition": condition or "run"}
+                       "condition": condition or "run", "object": object or self.config.env.object}
 
         def counted(_result) -> None:
             self.counters.episodes += 1
@@ -253,6 +256,7 @@ class Ranker:
         env = self.config.env
         try:
             check_policy(meta, env.object, env.force_feedback, env.action_steps(), env.torque_history, env.proprioception)
+            check_objects(meta, self.objects)
         except ValueError as exc:
             raise CheckpointRejected(f"{source}: {exc} (this run: {env.object}, force_feedback={env.force_feedback}, "
                                      f"proprioception={env.proprioception})") from None
@@ -285,8 +289,12 @@ class Ranker:
             self.counters.episode_seconds += time.perf_counter() - t0
             log.info("step %d: score %.2f, success %.0f%% over %d episodes (%.1f s)", step, result.score,
                      100 * result.success_rate, result.episodes, time.perf_counter() - t0)
+            if result.objects:
+                log.info("step %d per object: %s", step, ", ".join(
+                    f"{o} {v['success_rate']:.0%} ({v['score']:.1f})" for o, v in result.objects.items()))
             self.top.record(step, result.score, result.success_rate, result.episodes,
-                            **({"conditions": result.conditions} if result.conditions else {}))
+                            **({"conditions": result.conditions} if result.conditions else {}),
+                            **({"objects": result.objects} if result.objects else {}))
             self.last_result = (step, result)
             member = None
             if self.top.would_enter(result.score, step):
@@ -330,15 +338,17 @@ class Ranker:
             "step": step, "rank_score": rank.score, "rank_success_rate": rank.success_rate,
             "rank_episodes": rank.episodes, "eval_score": result.score, "eval_success_rate": result.success_rate,
             "eval_episodes": result.episodes, "run": self.config.run.name,
-            **({"rank_conditions": rank.conditions, "eval_conditions": result.conditions} if rank.conditions else {})}})
+            **({"rank_conditions": rank.conditions, "eval_conditions": result.conditions} if rank.conditions else {}),
+            **({"rank_objects": rank.objects, "eval_objects": result.objects,
+                "object_aggregate": self.config.evaluator.object_aggregate} if rank.objects else {})}})
         blob = policy_to_bytes(weights, meta)
         member = Member(
             file=policy_file_name(step), step=step, score=result.score, success_rate=result.success_rate,
             episodes=result.episodes, rank_score=rank.score, rank_success_rate=rank.success_rate,
             rank_episodes=rank.episodes, sha256=sha256(blob), size=len(blob), object=meta.object_name or
-            self.config.env.object, force_feedback=meta.force_feedback,
+            ("" if rank.objects else self.config.env.object), force_feedback=meta.force_feedback,
             policy_version=int(meta.extra.get("policy_version", 0) or 0), evaluated_at=time.time(),
-            conditions=rank.conditions)
+            conditions=rank.conditions, objects=rank.objects)
         return member, blob
 
     def _rescore_members(self) -> None:
@@ -390,6 +400,7 @@ class Ranker:
             "best_score": best.rank_score if best else None,
             "best_success_rate": best.rank_success_rate if best else None,
             "best_episodes": best.rank_episodes if best else None,
+            "best_objects": {o: v["success_rate"] for o, v in best.objects.items()} if best else {},
             "latest_step": self.last_result[0] if self.last_result else None,
             "latest_success_rate": self.last_result[1].success_rate if self.last_result else None,
             "latest_episodes": self.last_result[1].episodes if self.last_result else None,

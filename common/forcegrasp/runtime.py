@@ -60,8 +60,9 @@ def stop_on_signals() -> threading.Event:
     return stop
 
 
-def make_env(config: Config, **overrides):
-    """The FunctionalGraspEnv of this configuration (imports the simulator only when called)."""
+def make_env(config: Config, object_name: str | None = None, **overrides):
+    """The FunctionalGraspEnv of this configuration (imports the simulator only when called), for
+    ``object_name`` (default ``env.object``: with ``env.objects``, its first entry)."""
     from forcegrasp.env import FunctionalGraspEnv
 
     e = config.env
@@ -78,13 +79,18 @@ def make_env(config: Config, **overrides):
         **e.action_steps(),
     )
     kwargs.update(overrides)
-    return FunctionalGraspEnv(e.object, **kwargs)
+    return FunctionalGraspEnv(object_name or e.object, **kwargs)
 
 
 def policy_metadata(config: Config, hidden, training_steps: int = 0, score: float | None = None,
                     obs_norm: bool = False, **extra) -> PolicyMetadata:
-    """What a policy trained under ``config`` looks like: the contract between learner and actors."""
-    return task.policy_metadata(config.env.object, config.env.force_feedback, hidden, obs_norm=obs_norm,
+    """What a policy trained under ``config`` looks like: the contract between learner and actors.
+    With several ``env.objects`` it names no one object: ``extra["objects"]`` records the set."""
+    objects = config.env.objects if len(config.env.objects) > 1 else []
+    if objects:
+        extra = {"objects": list(objects), **extra}
+    return task.policy_metadata("" if objects else config.env.object, config.env.force_feedback, hidden,
+                                obs_norm=obs_norm,
                                 training_steps=training_steps, score=score, action_steps=config.env.action_steps(),
                                 torque_history=config.env.torque_history,
                                 proprioception=config.env.proprioception,

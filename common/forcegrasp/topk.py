@@ -71,6 +71,7 @@ class Member:
     policy_version: int = 0
     evaluated_at: float = 0.0
     conditions: dict = field(default_factory=dict)  # the rank score per test condition, when several are mixed
+    objects: dict = field(default_factory=dict)  # the rank figures per object, when a run trains several
 
     def membership_key(self) -> tuple:
         return (-self.score, self.step)
@@ -83,7 +84,7 @@ class Member:
         if not isinstance(raw, dict):
             raise ValueError("member is not a JSON object")
         names = {f.name for f in fields(cls)}
-        missing = sorted(names - set(raw) - {"policy_version", "evaluated_at", "conditions"})
+        missing = sorted(names - set(raw) - {"policy_version", "evaluated_at", "conditions", "objects"})
         if missing:
             raise ValueError(f"member misses {missing}")
         member = cls(**{k: raw[k] for k in names if k in raw})

@@ -10,6 +10,10 @@ object and the force-feedback setting come from the policy's metadata. The place
 figures are not inflated by the selection. Every sweep value sees the same placements (unless
 the jitter itself is swept). The policy acts deterministically (tanh of the mean).
 
+A policy of several objects (``env.objects``: its file records the set) is tested on each of them,
+one row per object and setting, the table ending with the worst object's figures; ``--object NAME``
+(repeatable) picks some.
+
 ``--video OUT.gif`` (or ``.mp4``) renders instead of scoring: one episode on the first held-out
 placement, seen by the object's camera; ``--video DIR`` writes ``DIR/test-000.gif``... for the
 first ``--video-count`` placements (the same placements, in the same order, as the scores).
@@ -23,6 +27,8 @@ import sys
 import time
 from collections import Counter
 from pathlib import Path
+
+from forcegrasp.multi_object import aggregate, policy_objects
 
 SWEEPABLE = ("mass_scale", "torque_noise_std", "jitter", "object_tolerance", "palm_tolerance")
 
@@ -58,24 +64,27 @@ def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
 
 
 def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
-                log=print, log_dir: Path | None = None) -> list[dict]:
-    """One row per sweep value: success rate, mean return and failure counts over the placements."""
+                log=print, log_dir: Path | None = None, objects: list[str] | None = None) -> list[dict]:
+    """One row per object and sweep value: success rate, mean return and failure counts over the
+    placements (``objects``: which of the policy's objects, default all)."""
     from forcegrasp.evaluation import placements, run_episode
 
     policy = _load_policy(policy_path)
     meta = policy.metadata
     key, values = sweep if sweep else (None, [None])
+    names = _objects_to_test(policy, objects)
     rows = []
-    for value in values:
+    for obj, value in ((o, v) for o in names for v in values):
         kwargs = dict(fixed)
         if key is not None:
             kwargs[key] = value
-        env = _env_for(policy, policy_path, kwargs)
+        env = _env_for(policy, policy_path, kwargs, obj)
         t0 = time.perf_counter()
-        folder = None if log_dir is None else log_dir / (f"{key}-{value:g}" if key else "as-given")
+        folder = None if log_dir is None else log_dir / (obj if len(names) > 1 else "") / (
+            f"{key}-{value:g}" if key else "as-given")
         results = [run_episode(env, policy, p, _logger(folder, env, p, meta, policy_path))
                    for p in placements(seed, episodes, env.jitter, "test", clear=env.is_clear)]
-        row = {"object": meta.object_name, "force_feedback": meta.force_feedback,
+        row = {"object": obj, "force_feedback": meta.force_feedback,
                "setting": key, "value": value, "episodes": len(results),
                "success_rate": sum(r.success for r in results) / len(results),
                "mean_return": sum(r.ret for r in results) / len(results),
@@ -83,7 +92,8 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
                "env": {k: getattr(env, k) for k in ("mass_scale", "torque_noise_std", "jitter", "object_tolerance")},
                "seconds": round(time.perf_counter() - t0, 1)}
         rows.append(row)
-        log(f"{key or 'settings'} = {value if key else kwargs or 'defaults'}: success {row['success_rate']:.0%}, "
+        log(f"{obj + ': ' if len(names) > 1 else ''}{key or 'settings'} = "
+            f"{value if key else kwargs or 'defaults'}: success {row['success_rate']:.0%}, "
             f"return {row['mean_return']:.1f}, failures {row['failures']} ({row['seconds']} s)")
     return rows
 
@@ -92,16 +102,29 @@ def _load_policy(policy_path: Path):
     from forcegrasp.policy import Policy
 
     policy = Policy.load(policy_path)
-    if not policy.metadata.object_name:
+    if not policy_objects(policy.metadata):
         raise ValueError(f"{policy_path}: the policy's metadata names no object")
     return policy
 
 
-def _env_for(policy, policy_path: Path, kwargs: dict):
-    """The env ``policy`` was trained for, with the test settings ``kwargs``."""
+def _objects_to_test(policy, wanted: list[str] | None) -> list[str]:
+    """The policy's objects (``extra["objects"]`` or its one object), or those of them ``wanted``."""
+    trained = policy_objects(policy.metadata)
+    unknown = sorted(set(wanted or ()) - set(trained))
+    if unknown:
+        raise ValueError(f"--object {', '.join(unknown)}: the policy was trained on {', '.join(trained)}")
+    return [o for o in trained if o in wanted] if wanted else trained
+
+
+def _env_for(policy, policy_path: Path, kwargs: dict, obj: str | None = None):
+    """The env ``policy`` was trained for (on ``obj``, default its first object), with the test
+    settings ``kwargs``."""
+    import dataclasses
+
     from forcegrasp.env import FunctionalGraspEnv
 
     meta = policy.metadata
+    meta = dataclasses.replace(meta, object_name=obj or policy_objects(meta)[0])
     env = FunctionalGraspEnv.for_policy(meta, **kwargs)
     if env.observation_space.shape[0] != meta.obs_dim:
         raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
@@ -123,13 +146,15 @@ def video_targets(out: Path, count: int, fmt: str) -> list[Path]:
     return [out]
 
 
-def render_videos(policy_path: Path, targets: list[Path], seed: int, fixed: dict, log=print) -> list[dict]:
-    """One deterministic episode per target on the first held-out ("test") placements, in order."""
+def render_videos(policy_path: Path, targets: list[Path], seed: int, fixed: dict, log=print,
+                  obj: str | None = None) -> list[dict]:
+    """One deterministic episode per target on the first held-out ("test") placements, in order
+    (on ``obj``, default the policy's first object)."""
     from forcegrasp.evaluation import placements
     from forcegrasp.video import episode_video
 
     policy = _load_policy(policy_path)
-    env = _env_for(policy, policy_path, dict(fixed))
+    env = _env_for(policy, policy_path, dict(fixed), obj)
     done = []
     try:
         for place, target in zip(placements(seed, len(targets), env.jitter, "test", clear=env.is_clear), targets):
@@ -152,7 +177,7 @@ def _logger(folder: Path | None, env, placement, meta, policy_path: Path):
     from forcegrasp.mcap_log import EpisodeLogger
 
     folder.mkdir(parents=True, exist_ok=True)
-    info = {"policy": str(policy_path), "object": meta.object_name, "episode": placement.index, "stream": "test"}
+    info = {"policy": str(policy_path), "object": env.object_spec.name, "episode": placement.index, "stream": "test"}
     return EpisodeLogger(folder / f"test-{placement.index:03d}.mcap", env, info)
 
 
@@ -163,7 +188,11 @@ def plot_rows(rows: list[dict], out: Path, title: str) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot([r["value"] for r in rows], [100 * r["success_rate"] for r in rows], marker="o")
+    for obj in dict.fromkeys(r["object"] for r in rows):  # one line per object of a multi-object policy
+        some = [r for r in rows if r["object"] == obj]
+        ax.plot([r["value"] for r in some], [100 * r["success_rate"] for r in some], marker="o", label=obj)
+    if len({r["object"] for r in rows}) > 1:
+        ax.legend()
     ax.set(xlabel=rows[0]["setting"], ylabel="success rate (%)", ylim=(-3, 103), title=title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -183,6 +212,8 @@ def main(argv=None) -> int:
     parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                         help=f"fixed env setting, repeatable; KEY one of {', '.join(SWEEPABLE)}")
     parser.add_argument("--sweep", metavar="KEY=V1,V2,...", help="test at each value of one env setting")
+    parser.add_argument("--object", action="append", default=[], metavar="NAME",
+                        help="test only this one of a multi-object policy's objects (repeatable; default all)")
     parser.add_argument("--json", type=Path, help="write the rows as JSON")
     parser.add_argument("--plot", type=Path, help="PNG of success rate against the swept setting")
     parser.add_argument("--log-dir", type=Path, help="write each episode as an MCAP log here (forcegrasp replay renders it)")
@@ -212,27 +243,38 @@ def main(argv=None) -> int:
     if targets is not None:
         print(f"policy {policy_path}: rendering {len(targets)} held-out episode(s)", flush=True)
         try:
-            render_videos(policy_path, targets, args.seed, fixed, log=lambda line: print(line, flush=True))
+            render_videos(policy_path, targets, args.seed, fixed, log=lambda line: print(line, flush=True),
+                          obj=args.object[0] if args.object else None)
         except ValueError as exc:
             parser.exit(2, f"forcegrasp eval: {exc}\n")
         return 0
     print(f"policy {policy_path}, {args.episodes} test placements per setting", flush=True)
     try:
         rows = evaluate_settings(policy_path, args.episodes, args.seed, fixed, sweep,
-                                 log=lambda line: print(line, flush=True), log_dir=args.log_dir)
+                                 log=lambda line: print(line, flush=True), log_dir=args.log_dir,
+                                 objects=args.object or None)
     except ValueError as exc:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
     print()
-    print(f"| {rows[0]['setting'] or 'settings'} | success | mean return | failures |")
-    print("|---|---:|---:|---|")
+    many = len({r["object"] for r in rows}) > 1
+    print(f"| {'object | ' if many else ''}{rows[0]['setting'] or 'settings'} | success | mean return | failures |")
+    print(f"|{'---|' if many else ''}---|---:|---:|---|")
     for r in rows:
-        print(f"| {r['value'] if r['setting'] else 'as given'} | {r['success_rate']:.0%} | {r['mean_return']:.1f} | "
+        print(f"| {r['object'] + ' | ' if many else ''}{r['value'] if r['setting'] else 'as given'} | "
+              f"{r['success_rate']:.0%} | {r['mean_return']:.1f} | "
               f"{', '.join(f'{k}: {n}' for k, n in sorted(r['failures'].items(), key=str)) or '-'} |")
+    if many:
+        for value in dict.fromkeys(r["value"] for r in rows):
+            some = [r for r in rows if r["value"] == value]
+            print(f"| worst object | {value if rows[0]['setting'] else 'as given'} | "
+                  f"{aggregate([r['success_rate'] for r in some]):.0%} | "
+                  f"{aggregate([r['mean_return'] for r in some]):.1f} | - |")
     if args.json:
         args.json.write_text(json.dumps({"policy": str(policy_path), "rows": rows}, indent=1))
     if args.plot:
         r = rows[0]
-        title = (f"{r['object']}, force feedback {'on' if r['force_feedback'] else 'off'}: {policy_path.name}\n"
+        names = ", ".join(dict.fromkeys(x["object"] for x in rows))
+        title = (f"{names}, force feedback {'on' if r['force_feedback'] else 'off'}: {policy_path.name}\n"
                  f"{r['episodes']} held-out placements per point")
         print(f"wrote {plot_rows(rows, args.plot, title)}")
     return 0

@@ -49,6 +49,9 @@ class TransitionBatch:
     horizon: np.ndarray | None = None          # i32[n] n-step horizon h in [1, MAX_HORIZON]; absent: 1
     privileged: np.ndarray | None = None       # f32[n, p] simulator state for an asymmetric critic
     next_privileged: np.ndarray | None = None  # f32[n, p] the same at next_obs
+    objects: list[str] | None = None           # the object names the indices below refer to (1..255, distinct)
+    object_index: np.ndarray | None = None     # u8[n] each transition's object, an index into objects
+    episode_objects: np.ndarray | None = None  # u8[k] each ended episode's object (with objects and episodes)
 
     @property
     def n(self) -> int:
@@ -71,6 +74,7 @@ def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) 
         if getattr(wire, name) is not None:
             check_values(getattr(wire, name), name)
     _check_extras(wire)
+    _check_objects(wire)
     for name in ("seq", "policy_version", "epoch"):
         if not is_int(getattr(wire, name)) or not 0 <= getattr(wire, name) <= INT64_MAX:
             raise ProtocolError(R_FIELD, f"{name} must be an integer in [0, 2^63)")
@@ -78,13 +82,17 @@ def encode_transitions(batch: TransitionBatch, limits: Limits = DEFAULT_LIMITS) 
            "policy_version": wire.policy_version, "time": wire.time, "epoch": wire.epoch}
     for name in ("obs", "action", "reward", "next_obs", "terminated", "truncated"):
         msg[name] = encode_array(getattr(wire, name))
-    for name in ("horizon", "privileged", "next_privileged"):
+    for name in ("horizon", "privileged", "next_privileged", "object_index"):
         if getattr(wire, name) is not None:
             msg[name] = encode_array(getattr(wire, name))
+    if wire.objects is not None:
+        msg["objects"] = list(wire.objects)
     if wire.has_episodes:
         msg["ep_return"] = encode_array(wire.episode_returns)
         msg["ep_length"] = encode_array(wire.episode_lengths)
         msg["ep_success"] = encode_array(wire.episode_successes)
+        if wire.episode_objects is not None:
+            msg["ep_object"] = encode_array(wire.episode_objects)
     payload = pack(msg)
     if len(payload) > limits.max_payload_bytes:
         raise ProtocolError(R_OVERSIZE, f"{len(payload)} bytes > cap {limits.max_payload_bytes}")
@@ -109,7 +117,20 @@ def _to_wire_dtypes(b: TransitionBatch) -> TransitionBatch:
         episode_successes=cast(b.episode_successes, np.bool_), epoch=int(b.epoch),
         horizon=cast(b.horizon, np.int32), privileged=cast(b.privileged, np.float32),
         next_privileged=cast(b.next_privileged, np.float32),
+        objects=_object_names(None if b.objects is None else list(b.objects)),
+        object_index=_index_cast(b.object_index, "object_index"),
+        episode_objects=_index_cast(b.episode_objects, "episode_objects"),
     )
+
+
+def _index_cast(x: Any, name: str) -> np.ndarray | None:
+    """Object indices as u8, refusing values a byte cannot hold (a cast would wrap them)."""
+    if x is None:
+        return None
+    a = np.asarray(x)
+    if a.size and (a.dtype.kind not in "iu" or a.min() < 0 or a.max() > MAX_OBJECTS - 1):
+        raise ProtocolError(R_FIELD, f"{name} must hold integers in [0, {MAX_OBJECTS})")
+    return a.astype(np.uint8)
 
 
 def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int | None = None,
@@ -128,11 +149,51 @@ def decode_transitions(payload: Any, *, obs_dim: int | None = None, act_dim: int
         episode_successes=_as_bool(r.array("ep_success", FLAGS, None)),
         horizon=r.array("horizon", frozenset({"<i4"}), None),
         privileged=r.array("privileged", FLOAT32, None), next_privileged=r.array("next_privileged", FLOAT32, None),
+        objects=_object_names(r.raw("objects", None)), object_index=r.array("object_index", U8, None),
+        episode_objects=r.array("ep_object", U8, None),
     )
     r.finish()
     _check_batch_shapes(batch, obs_dim, act_dim, limits)
     _check_extras(batch, priv_dim)
+    _check_objects(batch)
     return batch
+
+
+#: At most this many objects per batch (its indices are one byte); names as `validate_name`.
+MAX_OBJECTS = 255
+U8 = frozenset({"|u1"})
+
+
+def _object_names(raw: Any) -> list[str] | None:
+    if raw is None:
+        return None
+    if not isinstance(raw, list) or not 1 <= len(raw) <= MAX_OBJECTS:
+        raise ProtocolError(R_FIELD, f"objects must be a list of 1..{MAX_OBJECTS} object names")
+    names = [validate_name(o, "object name") for o in raw]
+    if len(set(names)) != len(names):
+        raise ProtocolError(R_FIELD, f"objects names an object twice: {names[:8]}")
+    return names
+
+
+def _check_objects(b: TransitionBatch) -> None:
+    """``objects`` and ``object_index`` go together; ``ep_object`` with them and the episode stats;
+    every index points into ``objects``."""
+    if (b.objects is None) != (b.object_index is None):
+        raise ProtocolError(R_MISSING, "objects and object_index go together")
+    if b.objects is None:
+        if b.episode_objects is not None:
+            raise ProtocolError(R_MISSING, "ep_object needs objects")
+        return
+    if b.has_episodes != (b.episode_objects is not None):
+        raise ProtocolError(R_MISSING, "with objects, ep_object comes with the episode stats and only with them")
+    pairs = [("object_index", b.object_index, b.n)]
+    if b.episode_objects is not None:
+        pairs.append(("ep_object", b.episode_objects, b.episode_returns.shape[0]))
+    for name, arr, length in pairs:
+        if arr.shape != (length,):
+            raise ProtocolError(R_SHAPE, f"{name} has shape {list(arr.shape)}, expected [{length}]")
+        if arr.size and int(arr.max()) >= len(b.objects):
+            raise ProtocolError(R_FIELD, f"{name}: index {int(arr.max())} outside the {len(b.objects)} objects")
 
 
 #: Longest n-step horizon a transition may declare; bound on privileged-state magnitudes (cm within

@@ -175,7 +175,8 @@ def main(argv=None) -> int:
     configure_threads(1)  # a batch of a few observations gains nothing from more; leave cores to the envs
     stop = stop_on_signals()
     service = ActorService(config, actor_id, seed=seed)
-    log.info("actor %s: %d envs of %s, run %s", actor_id, len(service.envs), config.env.object, config.run.name)
+    log.info("actor %s: %d envs of %s, run %s", actor_id, len(service.envs), ", ".join(service.env_objects),
+             config.run.name)
     service.run(stop)
     log.info("actor %s: stopped after %d steps", actor_id, service.steps)
     return 0

@@ -4,6 +4,8 @@ Over Zenoh by default (the shared ``--config``/``--set`` options say which run a
 learner listens; the query reaches the evaluator through the learner's peer mesh), or over HTTP
 with ``--url http://HOST:PORT``. The file is checked (SHA-256, full policy-file parse) before it
 is written; nothing is written on any error, and the exit status is 1 with a message saying why.
+The policy's metadata goes to stdout as JSON; for a policy of several objects (``env.objects``) it
+carries their ranking figures (``objects``), also printed as a table on stderr.
 """
 
 from __future__ import annotations
@@ -38,8 +40,21 @@ def main(argv=None) -> int:
         return 1
     with atomic_write(args.out) as f:
         f.write(best.policy)
-    print(json.dumps({**best.metadata(), "out": args.out}, indent=1))
+    objects, how = _per_object(best.policy)
+    print(json.dumps({**best.metadata(), **({"objects": objects} if objects else {}), "out": args.out}, indent=1))
+    if objects:
+        from forcegrasp.multi_object import object_table
+
+        print("\n".join(object_table(objects, how)), file=sys.stderr)
     return 0
+
+
+def _per_object(policy: bytes) -> tuple[dict, str | None]:
+    """The ranking figures per object a policy file's evaluation records, and their aggregate."""
+    from forcegrasp.policy_file import load_policy_bytes
+
+    evaluation = load_policy_bytes(policy)[1].extra.get("evaluation") or {}
+    return dict(evaluation.get("rank_objects") or {}), evaluation.get("object_aggregate")
 
 
 def _run_was_given(args) -> bool:

@@ -10,10 +10,10 @@ HTTP (stdlib ``http.server``, one thread per request, GET and HEAD only):
 
 =================  =====================================================================
 ``/``              the routes, as JSON
-``/best``          the best policy's metadata (JSON)
+``/best``          the best policy's metadata (JSON; with several objects their table, ``objects``)
 ``/best/policy``   the best policy file (``application/octet-stream`` download); headers
                    ``X-ForceGrasp-Sha256`` and ``X-ForceGrasp-Meta`` (the metadata, JSON)
-``/top``           the top-k index (JSON, without the evaluation history)
+``/top``           the top-k index (JSON, without the evaluation history; per member ``objects``)
 =================  =====================================================================
 
 Everything is served from an in-memory snapshot the service replaces after each change, so a
@@ -67,6 +67,9 @@ class Snapshot:
         meta = best.metadata() if best is not None else None
         if meta is not None:
             meta["policy_url"] = "/best/policy"
+            objects = next((m.get("objects") for m in top.get("members", []) if m.get("best")), None)
+            if objects:  # a run of several objects: the best's ranking figures per object
+                meta["objects"] = objects
         return cls(run, best, reply, _json(meta) if meta else b"", _json(top))
 
 

@@ -13,7 +13,8 @@ best policy served as a Zenoh queryable and over read-only HTTP.
 - Top k (``evaluator.top_k``) in ``<output_dir>/<run>/evaluator/top/`` (see ``topk.py`` for the
   crash-safety rules); a newcomer is scored on ``evaluator.final_rank_episodes`` ranking
   placements and the best member by that score is marked in the index and served.
-- Episodes go to ``<output_dir>/<run>/evaluator/episodes/<step>/{eval,rank}-<i>.mcap``.
+- Episodes go to ``<output_dir>/<run>/evaluator/episodes/<step>/{eval,rank}-<i>.mcap``
+  (``{eval,rank}-<object>-<i>.mcap`` in a run of several objects, ``env.objects``).
 - Stats on ``forcegrasp/<run>/stats/evaluator/<id>``, liveliness token, SIGINT/SIGTERM stop it.
 """
 
@@ -285,7 +286,7 @@ def main(argv=None) -> int:
                                newest_first=not (args.once or args.all))
     ev = config.evaluator
     log.info("evaluator %s: run %s, %s, every %d steps on %d episodes, top %d ranked on %d episodes, checkpoints in %s",
-             args.id, config.run.name, config.env.object, ev.eval_every, ev.eval_episodes, ev.top_k,
+             args.id, config.run.name, ", ".join(service.objects), ev.eval_every, ev.eval_episodes, ev.top_k,
              ev.final_rank_episodes, service.checkpoint_dir)
     try:
         if args.once:

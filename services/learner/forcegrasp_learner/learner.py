@@ -90,6 +90,12 @@ class LearnerService(Learner):
             if self.rejects.reject(exc) <= 5:
                 log.warning("dropped a message on %s: %s", key, exc)
             return 0
+        foreign = self.foreign_objects(batch)
+        if foreign:  # an actor started with other objects: its data would train what this run does not
+            if self.rejects.reject("foreign_object") <= 5:
+                log.warning("dropped a batch of actor %s: it steps %s, not among this run's objects (%s)",
+                            batch.actor_id, ", ".join(foreign), ", ".join(self.objects))
+            return 0
         if not self.streams.admit(batch, self.policy_version):
             return 0  # resent after an outage, already in replay
         self.rejects.accept()
@@ -193,7 +199,8 @@ def main(argv=None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     stop = stop_on_signals()
     service = LearnerService(config)
-    log.info("learner: run %s, %s, listening on %s", config.run.name, config.env.object, config.network.learner_listen)
+    log.info("learner: run %s, %s, listening on %s", config.run.name, ", ".join(service.objects),
+             config.network.learner_listen)
     service.run(stop)
     service.checkpoint()
     log.info("learner: stopped at %d transitions, checkpoint written", service.ingested)
