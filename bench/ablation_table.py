@@ -14,6 +14,7 @@ run never reached is "–", never a guess; the table's last columns say how long
 were and how fast they ran. Only version-2 records are read (`forcegrasp.cli.experiment.check_record`).
 
     python bench/ablation_table.py experiments/*.json
+    python bench/ablation_table.py --write docs/recipe.md experiments/*.json   # between its markers
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 
 from forcegrasp.cli.experiment import RecordError, read_record
 from forcegrasp.config import Config
+from forcegrasp.markdown import replace_between
 from forcegrasp.recipes import demo_episodes, recipe_settings
 from forcegrasp.sac import SACConfig
 from forcegrasp.task import ACTION_STEP_KEYS
@@ -145,10 +147,17 @@ def table(paths: list[Path]) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("records", nargs="+", type=Path)
+    parser.add_argument("--write", type=Path, help="put the table between this page's <!-- ablation-table --> markers")
+    args = parser.parse_args(argv)
     try:
-        print(table(parser.parse_args(argv).records))
+        text = table(args.records)
     except (RecordError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.write is None:
+        print(text)
+    elif not replace_between(args.write, "ablation-table", text.splitlines()):
+        print(f"error: {args.write}: no <!-- ablation-table --> ... <!-- /ablation-table --> markers", file=sys.stderr)
         return 2
     return 0
 

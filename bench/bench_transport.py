@@ -12,8 +12,8 @@ Two processes on loopback, as in a local run:
   CLOCK_MONOTONIC, which is system-wide on Linux, so both processes read the same clock.  The
   helper also times the late-joiner path: ``get`` on ``weights/latest`` + decode.
 
-Usage: ``python bench/bench_transport.py [--duration 3] [--batches 64 256] [--no-write]``
-Writes ``docs/benchmarks-transport.md`` unless ``--no-write``.
+Usage: ``python bench/bench_transport.py [--duration 3] [--batches 64 256] [--out REPORT.md]``
+Prints the report (docs/benchmarks.md quotes its figures); ``--out`` also writes it to a file.
 """
 
 from __future__ import annotations
@@ -292,8 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--duration", type=float, default=3.0, help="seconds of publishing per throughput case")
     parser.add_argument("--batches", type=int, nargs="+", default=[64, 256])
     parser.add_argument("--weights-count", type=int, default=100)
-    parser.add_argument("--out", default=str(REPO / "docs" / "benchmarks-transport.md"))
-    parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--out", default=None, help="also write the report to this file")
     args = parser.parse_args(argv)
 
     throughput = []
@@ -315,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     report = render(throughput, latency, decode_rates, args.duration)
     print()
     print(report)
-    if not args.no_write:
+    if args.out:
         Path(args.out).write_text(report)
         print(f"written to {args.out}")
     return 0

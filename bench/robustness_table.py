@@ -11,11 +11,11 @@ record (`forcegrasp.cli.experiment.check_record`).
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
 from forcegrasp.cli.experiment import RecordError, read_record
+from forcegrasp.markdown import replace_between
 
 MARKER = "robustness-table"
 
@@ -56,15 +56,6 @@ def rows(records: list[dict]) -> list[str]:
     return head + out if out else []
 
 
-def write_between_markers(page: Path, lines: list[str]) -> None:
-    """Replace what lies between ``<!-- robustness-table -->`` and its closing marker in ``page``."""
-    text = page.read_text()
-    pattern = re.compile(rf"(<!-- {MARKER} -->\n).*?(<!-- /{MARKER} -->)", re.S)
-    if not pattern.search(text):
-        raise SystemExit(f"{page}: no <!-- {MARKER} --> ... <!-- /{MARKER} --> markers")
-    page.write_text(pattern.sub(lambda m: m.group(1) + "".join(line + "\n" for line in lines) + m.group(2), text))
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("records", nargs="+", type=Path)
@@ -77,7 +68,8 @@ def main(argv=None) -> int:
         return 2
     lines = rows(records)
     if args.write:
-        write_between_markers(args.write, lines)
+        if not replace_between(args.write, MARKER, lines):
+            raise SystemExit(f"{args.write}: no <!-- {MARKER} --> ... <!-- /{MARKER} --> markers")
         print(f"wrote {len(lines)} lines into {args.write}")
     else:
         print("\n".join(lines))

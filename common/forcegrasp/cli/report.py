@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 from forcegrasp import docs_dir
+from forcegrasp.markdown import replace_between
 from forcegrasp.report import (FIG3_OFFSETS, MASSES, NOISE_LEVELS, PAPER, POLICIES_DIR, PROTOCOLS, run_experiments,
                                shipped_policies, summarise)
 
@@ -182,6 +183,40 @@ def _cell(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> str:
     return f"**{k / n:.0%}** ({lo:.0%}–{hi:.0%}, n={n})"
 
 
+def results_table(summary: dict, objects: list[str]) -> list[str]:
+    """The summary table: success with and without force feedback, lighter objects and torque noise
+    (the page's first table, and the README's between its ``results-table`` markers)."""
+    lines = ["| object | with force feedback | without | paper (with / without) | 1x mass, 0.03 m | 0.5x mass, 0.03 m | "
+             "torque noise 0.5 N·m |", "|---|---|---|---|---|---|---|"]
+    for o in objects:
+        paper_light = PAPER["mass_1"].get(o)
+        lines.append(f"| {o} | {_cell(summary, o, True, 'held_out')} | {_cell(summary, o, False, 'held_out')} | "
+                     f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''} | "
+                     f"{_cell(summary, o, True, 'mass', '1')} | {_cell(summary, o, True, 'mass', '0.5')} | "
+                     f"{_cell(summary, o, True, 'noise', '0.5')} |")
+    return lines
+
+
+def arms_section(probe: Path) -> list[str]:
+    """What each observation arm carries of the torques, contact and object offset: the held-out R^2
+    of `bench/ff_information.py`'s probes, from its JSON record (empty when there is none)."""
+    if not probe.is_file():
+        return []
+    rows = json.loads(probe.read_text())
+    first = rows[0]
+    lines = ["## What each arm sees", "",
+             f"Held-out R² of a linear (ridge) probe from what each observation arm sees, on {first['episodes']} "
+             f"episodes per object driven by {first['actions']} actions (`python bench/ff_information.py --json "
+             f"{probe.name}`; 1 = fully recoverable, ≤ 0 = nothing beyond the mean). The `timing` row knows only the "
+             "step and the commanded h.", "",
+             "| object | arm | observed | torques | hand contact | fingertip contacts | object offset |",
+             "|---|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['object']} | {r['arm']} | {r['obs_dim']} | {r['torques']:.2f} | {r['hand_contact']:.2f} | "
+                     f"{r['fingertip_contacts']:.2f} | {r['object_offset']:.2f} |")
+    return lines + [""]
+
+
 def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path) -> Path:
     objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
     rel = lambda p: p.relative_to(out).as_posix()  # noqa: E731
@@ -194,15 +229,8 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         f"{seconds / 60:.1f} min on this machine). Placements are the `test` stream (seed 0), never used to pick a "
         "checkpoint; actions deterministic; 95 % Wilson intervals, seeds pooled.",
         "",
-        "| object | with force feedback | without | paper (with / without) | 1x mass, 0.03 m | 0.5x mass, 0.03 m | torque noise 0.5 N·m |",
-        "|---|---|---|---|---|---|---|",
+        *results_table(summary, objects),
     ]
-    for o in objects:
-        paper_light = PAPER["mass_1"].get(o)
-        lines.append(f"| {o} | {_cell(summary, o, True, 'held_out')} | {_cell(summary, o, False, 'held_out')} | "
-                     f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''} | "
-                     f"{_cell(summary, o, True, 'mass', '1')} | {_cell(summary, o, True, 'mass', '0.5')} | "
-                     f"{_cell(summary, o, True, 'noise', '0.5')} |")
     lines += ["", f"The paper (1 M steps, 4 h on a GPU per policy): {PAPER['held_out_ff']} with force feedback, "
               f"{PAPER['held_out_noff']} without; lighter objects at 1x mass drill 73 %, mug 80 %, camera 99 % (spray "
               f"lower), at 0.5x {PAPER['mass_0.5']}; torque noise: {PAPER['noise']}.", "",
@@ -223,7 +251,7 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         "fig8": "Robustness against joint-torque noise, 0 to 1 N·m (Fig. 8)",
         "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, with and without force feedback (Fig. 3)",
     }
-    lines += ["", "## Figures", ""]
+    lines += ["", *arms_section(out.parent / "experiments" / "ff_information.json"), "## Figures", ""]
     for key, caption in captions.items():
         if key in figures:
             lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
@@ -277,8 +305,10 @@ def main(argv=None) -> int:
         {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "policies": summary,
          "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
     page = write_page(policies, summary, figures, name, seconds, args.out)
-    for line in page.read_text().splitlines()[8:8 + len(objects)]:
-        print(line)
+    table = results_table(summary, objects)
+    print("\n".join(table))
+    if replace_between(args.out.parent / "README.md", "results-table", table):
+        print(f"updated the results table of {args.out.parent / 'README.md'}")
     print(f"wrote {page}, {args.out / 'results.json'} and {len(figures)} figures in {figs_dir} ({seconds:.0f} s)")
     return 0
 
