@@ -58,7 +58,10 @@ filed). Its keys:
 The ablation table groups records by object, force-feedback arm and setting; a setting is named by
 how the record's `effective` settings and configuration differ from the default recipe on that
 object (the "setting" column below). `snapshot-spread/` holds the output of
-`bench/snapshot_spread.py` for one run (not an experiment record: the tables do not read it).
+`bench/snapshot_spread.py` for one run (not an experiment record: the tables do not read it), and
+`benchmarks/` the logs of the benchmark runs whose figures docs/benchmarks.md quotes (their names
+carry the date: the machine's speed varies between days), with `ff_information.json` the probe
+figures docs/results.md shows.
 """
 
 
