@@ -123,7 +123,7 @@ def test_bad_values_are_named(override, key):
 
 
 def test_unknown_object_lists_the_valid_ones():
-    with pytest.raises(ConfigError, match="unknown object 'drill'; valid objects: camera, mug, power_drill"):
+    with pytest.raises(ConfigError, match="unknown object 'drill'; valid objects: camera, mug, mug_mesh, power_drill"):
         load_config(env={}, overrides=["env.object=drill"])
 
 

@@ -44,7 +44,7 @@ def test_same_seed_gives_the_same_episode():
 
 
 def test_unknown_object_lists_the_valid_ones():
-    with pytest.raises(ObjectFileError, match="valid objects: camera, mug, power_drill, spray_bottle"):
+    with pytest.raises(ObjectFileError, match="valid objects: camera, mug, mug_mesh, power_drill, spray_bottle"):
         FunctionalGraspEnv("teapot")
     with pytest.raises(ObjectFileError, match="unknown object"):
         load_object("../objects/mug")

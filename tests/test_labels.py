@@ -23,7 +23,7 @@ from forcegrasp.objects import list_objects, load_object
 from forcegrasp.scene import SceneIndex, build_model, resting_height
 from forcegrasp.scripted import jitter_offsets, success_rate
 
-OBJECTS = ["spray_bottle", "power_drill", "mug", "camera"]
+OBJECTS = ["spray_bottle", "power_drill", "mug", "camera", "mug_mesh"]
 
 
 def test_every_object_has_a_label():

@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from forcegrasp.objects import ObjectSpec
-from forcegrasp.scene import SceneIndex, build_model, object_geom_name, resting_height
+from forcegrasp.scene import SceneIndex, build_model, part_geoms, resting_height
 
 FINGERS = ("ff", "mf", "rf", "lf", "th")
 HOLD_LIMIT_M = 0.01  # the object may move this much (on the table, or relative to the palm in the air)
@@ -70,11 +70,11 @@ def _contacts(m, d, ix: SceneIndex) -> tuple[set[str], float]:
 
 def _functional_gap(m, d, ix: SceneIndex, obj: ObjectSpec) -> float:
     """Distance from the functional finger (any phalanx: a finger through a mug's handle works it
-    with its middle phalanx) to the functional part."""
+    with its middle phalanx) to the functional part (a mesh region: the object's surface inside it)."""
     f = obj.grasp_hint.functional_finger
     segments = [m.geom(f"C_{f}{s}").id for s in ("distal", "middle", "proximal")]
-    return min(mujoco.mj_geomDistance(m, d, g, m.geom(object_geom_name(obj, p)).id, 0.05, None)
-               for g in segments for p in obj.functional_part)
+    return min(mujoco.mj_geomDistance(m, d, g, o, 0.05, None)
+               for g in segments for p in obj.functional_part for o in part_geoms(m, obj, p))
 
 
 def _object_in_palm(m, d, ix: SceneIndex) -> np.ndarray:

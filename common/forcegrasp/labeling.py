@@ -37,7 +37,7 @@ from forcegrasp.scene import (
     HAND_JOINTS,
     SceneIndex,
     build_model,
-    object_geom_name,
+    part_geoms,
     resting_height,
     slide_axes,
 )
@@ -80,6 +80,11 @@ class GoalProblem:
             res.append(self.w_contact * min(dist(self.palm_geom, g) for g in ix.object_geoms))
         for h in ix.hand_geoms:
             for o in (*ix.object_geoms, self.table_geom):
+                # Bounding spheres apart: no penetration, no query (a mesh object has many convex parts).
+                if o != self.table_geom and (np.linalg.norm(d.geom_xpos[h] - d.geom_xpos[o])
+                                             > m.geom_rbound[h] + m.geom_rbound[o]):
+                    res.append(0.0)
+                    continue
                 depth = -dist(h, o)
                 res.append(self.w_penetration * max(0.0, depth - PENETRATION_FREE))
         res.extend(self.w_posture * (q - self.q_start))
@@ -122,7 +127,7 @@ def solve_goal(obj: ObjectSpec, m: mujoco.MjModel | None = None, seed: int = 0, 
         d=d,
         ix=ix,
         functional_geom=ix.fingertip_geoms[hint.functional_finger],
-        part_geoms=[m.geom(object_geom_name(obj, p)).id for p in obj.functional_part],
+        part_geoms=[g for p in obj.functional_part for g in part_geoms(m, obj, p)],
         holds=holding_contacts(obj, m, ix),
         targets=[(*_target_frame(m, f), np.asarray(p) + [0.0, 0.0, resting_height(m)]) for f, p in hint.targets.items()],
         palm_geom=m.geom("C_palm0").id,
@@ -167,7 +172,7 @@ def _target_frame(m: mujoco.MjModel, key: str) -> tuple[str, int]:
 def holding_contacts(obj: ObjectSpec, m: mujoco.MjModel, ix: SceneIndex) -> list[tuple[int, list[int]]]:
     """The hint's holding contacts: ``contacts`` (finger -> named parts) and ``support_fingers``
     (anywhere on the object)."""
-    out = {f: [m.geom(object_geom_name(obj, p)).id for p in parts] for f, parts in obj.grasp_hint.contacts.items()}
+    out = {f: [g for p in parts for g in part_geoms(m, obj, p)] for f, parts in obj.grasp_hint.contacts.items()}
     for f in obj.grasp_hint.support_fingers:
         out.setdefault(f, list(ix.object_geoms))
     return [(ix.fingertip_geoms[f], parts) for f, parts in out.items()]

@@ -31,6 +31,34 @@ surface under the object)::
         "lookat": [0.05, -0.03, 0.09]      # the point looked at, from the object's origin (m)
       }
     }
+
+Mesh objects. A file may name a mesh instead of, or beside, primitives (``geoms`` is then
+optional). ``forcegrasp object import FILE --name NAME --mass KG`` writes this entry and the files
+it names (`forcegrasp.mesh_import`); the paths are relative to the assets folder (the parent of
+``objects/``) and stay inside it::
+
+      "mesh": {
+        "source": "meshes/mug_mesh/mug.obj",     # the file imported (OBJ or STL), kept as given
+        "source_sha256": "...",                  # optional: a changed source is refused (re-import)
+        "scale": 1.0,                            # source units -> m
+        "euler_deg": [0, 0, -90],                # rotation of the source (x, y, z, degrees), after scaling
+        "pos": [0, 0, 0],                        # then this shift (m): lowest vertex on the table (z = 0)
+        "visual": "meshes/mug_mesh/visual.obj",  # the repaired, watertight mesh in the object frame (m)
+        "parts": "meshes/mug_mesh/parts.obj",    # its convex parts (CoACD), one `o` block each, same frame
+        "rgba": [0.9, 0.9, 0.85, 1],             # optional colour of the visual mesh
+        "measured": {...}                        # optional, informational: what the import measured
+      },
+      "regions": {                               # named regions of the mesh's surface (object frame, m)
+        "handle": {"box": [x, y, z, hx, hy, hz]},    # centre and half-sizes, or
+        "rim": {"sphere": [x, y, z, r]},             # centre and radius; "group": "NAME" records the
+      },                                             # OBJ group a box was made from
+      "functional_part": ["handle"],             # a region (or primitive geom names, as above)
+
+The visual mesh carries the object's mass (``mass`` × its share of the volume when primitives are
+there too), its inertia computed by MuJoCo from the closed mesh at uniform density; the convex parts
+collide (and carry no mass). A region's geoms are the convex parts clipped to it (see
+`forcegrasp.meshes`): ``functional_part`` and ``grasp_hint.contacts`` may name regions, and
+``contacts`` may name ``"mesh"`` (anywhere on the mesh).
 """
 
 from __future__ import annotations
@@ -116,6 +144,43 @@ VIEW_BOUNDS = {"azimuth": (-360.0, 360.0), "elevation": (-90.0, 90.0), "distance
 
 
 @dataclass(frozen=True)
+class Region:
+    """Part of a mesh's surface: the surface inside a box (``size``: half-sizes) or a sphere
+    (``size``: [radius]) in object coordinates (m)."""
+
+    kind: str
+    center: tuple[float, float, float]
+    size: tuple[float, ...]
+    group: str = ""  # the OBJ group a box was made from (informational)
+
+    def to_json(self) -> dict:
+        out = {self.kind: [*self.center, *self.size]}
+        if self.group:
+            out["group"] = self.group
+        return out
+
+
+#: values per region kind: centre (3) and half-sizes (3) or radius (1)
+REGION_COUNT = {"box": 6, "sphere": 4}
+MESH_SUFFIXES = (".obj", ".stl")
+MESH_PART = "mesh"  # the part name meaning "anywhere on the mesh" (its convex parts)
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    """The ``mesh`` entry: files resolved to absolute paths, the rest as written."""
+
+    visual: Path
+    parts: Path
+    source: str
+    scale: float = 1.0
+    euler_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rgba: tuple[float, float, float, float] = (0.85, 0.85, 0.8, 1.0)
+    measured: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class ObjectSpec:
     name: str
     description: str
@@ -126,6 +191,12 @@ class ObjectSpec:
     friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
     path: Path | None = None
     view: View = View()
+    mesh: MeshSpec | None = None
+    regions: dict[str, Region] = field(default_factory=dict)
+
+    def part_names(self) -> list[str]:
+        """What ``functional_part`` and ``grasp_hint.contacts`` may name."""
+        return [g.name for g in self.geoms] + list(self.regions) + ([MESH_PART] if self.mesh else [])
 
 
 def objects_dir() -> Path:
@@ -208,9 +279,13 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
     mass = _field(raw, "mass", source)
     if not isinstance(mass, (int, float)) or not np.isfinite(mass) or mass <= 0:
         raise ObjectFileError(f"{source}: field 'mass' must be a positive number (kg), got {mass!r}")
-    geoms_raw = _field(raw, "geoms", source)
-    if not isinstance(geoms_raw, list) or not geoms_raw:
-        raise ObjectFileError(f"{source}: field 'geoms' must be a non-empty list")
+    assets = Path(path).resolve().parent.parent if path is not None else ASSETS_DIR
+    from forcegrasp.object_meshes import parse_mesh, parse_regions  # they build on this module's types
+
+    mesh = parse_mesh(raw["mesh"], source, assets) if isinstance(raw, dict) and "mesh" in raw else None
+    geoms_raw = raw.get("geoms", []) if mesh is not None else _field(raw, "geoms", source)
+    if not isinstance(geoms_raw, list) or (not geoms_raw and mesh is None):
+        raise ObjectFileError(f"{source}: field 'geoms' must be a non-empty list (or the file needs a 'mesh')")
     geoms = []
     for i, g in enumerate(geoms_raw):
         where = f"geoms[{i}]"
@@ -236,11 +311,16 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
     names = [g.name for g in geoms]
     if len(set(names)) != len(names):
         raise ObjectFileError(f"{source}: field 'geoms' has duplicate names {names}")
+    if mesh is not None and MESH_PART in names:
+        raise ObjectFileError(f"{source}: field 'geoms': the name {MESH_PART!r} is the mesh's own with a 'mesh'")
+    regions = parse_regions(raw.get("regions", {}), source, mesh is not None, names)
+    names = names + list(regions) + ([MESH_PART] if mesh is not None else [])
     part = _field(raw, "functional_part", source)
     part = (part,) if isinstance(part, str) else tuple(part) if isinstance(part, list) else None
     if not part or any(p not in names for p in part):
         raise ObjectFileError(
-            f"{source}: field 'functional_part' must name geoms among {names}, got {raw['functional_part']!r}"
+            f"{source}: field 'functional_part' must name geoms or regions among {names}, "
+            f"got {raw['functional_part']!r}"
         )
     hint_raw = _field(raw, "grasp_hint", source)
     finger = _field(hint_raw, "functional_finger", f"{source}: grasp_hint")
@@ -296,4 +376,6 @@ def parse_object(raw: dict, source: str = "<object>", path: Path | None = None) 
         friction=friction,
         path=path,
         view=parse_view(raw.get("view"), source),
+        mesh=mesh,
+        regions=regions,
     )

@@ -10,6 +10,11 @@ Edits to the stock model (``adroit_relocate.xml``), and why:
 - the base rotation ranges widened (the stock +-0.75 rad cannot turn the palm sideways) and
   the base allowed to sink (stock ARTy only rises);
 - the stock sphere, mocap tracker and target site removed; the object is a free body.
+
+A mesh object (`forcegrasp.objects.MeshSpec`) is one visual mesh geom (no contacts, group 2) that
+carries the mass, MuJoCo computing its inertia from the closed mesh at uniform density, plus one
+colliding geom per convex part (group 3, no mass), plus, per region, the convex parts clipped to it
+(no contacts, no mass, group 5): the geoms that `part_geoms` returns for a region's name.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from forcegrasp.objects import ObjectSpec
+from forcegrasp.objects import MESH_PART, ObjectFileError, ObjectSpec
 
 BASE_JOINTS = ("ARTx", "ARTy", "ARTz", "ARRx", "ARRy", "ARRz")
 HAND_JOINTS = (
@@ -122,13 +127,104 @@ def object_geom_name(obj: ObjectSpec, geom: str) -> str:
     return f"{obj.name}/{geom}"
 
 
+#: geom groups of a mesh object's geoms (MuJoCo shows groups 0-2 by default)
+VISUAL_GROUP, COLLISION_GROUP, REGION_GROUP = 2, 3, 5  # the hand: visual 1, collision 4
+REGION_RGBA = (1.0, 0.45, 0.0, 1.0)
+
+
+def part_geom_prefix(obj: ObjectSpec, part: str) -> str | None:
+    """Geom-name prefix of a mesh part (``mesh``: the convex parts; a region: its pieces), or None
+    for a primitive geom (named `object_geom_name`)."""
+    if obj.mesh is not None and part == MESH_PART:
+        return f"{obj.name}/{MESH_PART}#"
+    if part in obj.regions:
+        return f"{obj.name}/{part}#"
+    return None
+
+
+def part_geoms(m: mujoco.MjModel, obj: ObjectSpec, part: str) -> list[int]:
+    """Geom ids of a named part: a primitive geom, a mesh region's pieces, or (``mesh``) the convex parts."""
+    prefix = part_geom_prefix(obj, part)
+    if prefix is None:
+        return [m.geom(object_geom_name(obj, part)).id]
+    return [g for g in range(m.ngeom) if m.geom(g).name.startswith(prefix)]
+
+
 def _add_object(spec: mujoco.MjSpec, obj: ObjectSpec, mass_scale: float) -> None:
     body = spec.worldbody.add_body(name=OBJECT_BODY, pos=[0.0, 0.0, TABLE_TOP_Z])
     body.add_freejoint(name="object_free")
     body.add_site(name="object_origin", pos=[0, 0, 0], size=[0.004, 0, 0], rgba=[1, 0, 0, 0.5])
-    total_volume = sum(g.volume() for g in obj.geoms)
+    visual = _mesh_visual(obj) if obj.mesh is not None else None
+    mesh_volume = 0.0 if visual is None else visual[2]
+    total_volume = sum(g.volume() for g in obj.geoms) + mesh_volume
     for g in obj.geoms:
         _add_geom(body, obj, g, mass_scale, total_volume)
+    if visual is not None:
+        _add_mesh(spec, body, obj, visual, obj.mass * mass_scale * mesh_volume / total_volume)
+
+
+def _mesh_visual(obj: ObjectSpec) -> tuple[np.ndarray, np.ndarray, float]:
+    from forcegrasp.meshes import mesh_volume, read_obj_cached
+
+    blocks = read_obj_cached(obj.mesh.visual)
+    if not blocks:
+        raise ObjectFileError(f"{obj.name}: {obj.mesh.visual} has no faces")
+    offsets = np.cumsum([0] + [len(V) for _, V, _ in blocks])
+    V = np.vstack([V for _, V, _ in blocks])
+    F = np.vstack([F + o for (_, _, F), o in zip(blocks, offsets)])
+    volume = mesh_volume(V, F)
+    if volume <= 0:
+        raise ObjectFileError(f"{obj.name}: {obj.mesh.visual} encloses no volume ({volume:.3g} m^3): import it again")
+    return V, F, volume
+
+
+def _mesh_geom(spec: mujoco.MjSpec, body, name: str, V: np.ndarray, F: np.ndarray, inertia) -> object:
+    mesh = spec.add_mesh(name=name)
+    mesh.scale = [1.0, 1.0, 1.0]  # the ADROIT file's mesh default scales its mm meshes by 0.001: ours are in m
+    mesh.refpos, mesh.refquat = [0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+    mesh.uservert = np.asarray(V, float).ravel().tolist()
+    mesh.userface = np.asarray(F, int).ravel().tolist()
+    mesh.inertia = inertia
+    geom = body.add_geom()
+    geom.name = name
+    geom.type = mujoco.mjtGeom.mjGEOM_MESH
+    geom.meshname = name
+    return geom
+
+
+def _add_mesh(spec: mujoco.MjSpec, body, obj: ObjectSpec, visual, mass: float) -> None:
+    from forcegrasp.meshes import convex_triangles, read_obj_cached, region_pieces
+
+    V, F, _ = visual
+    geom = _mesh_geom(spec, body, object_geom_name(obj, MESH_PART), V, F, mujoco.mjtMeshInertia.mjMESH_INERTIA_EXACT)
+    geom.mass = mass  # MuJoCo: inertia from the closed mesh at the uniform density this mass gives
+    geom.contype = geom.conaffinity = 0
+    geom.group = VISUAL_GROUP
+    geom.rgba = list(obj.mesh.rgba)
+    parts = read_obj_cached(obj.mesh.parts)
+    if not parts:
+        raise ObjectFileError(f"{obj.name}: {obj.mesh.parts} has no convex parts: import it again")
+    for k, (_, PV, PF) in enumerate(parts):
+        geom = _mesh_geom(spec, body, f"{part_geom_prefix(obj, MESH_PART)}{k}", PV, PF,
+                          mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX)
+        geom.mass = 0.0
+        geom.friction = list(obj.friction)
+        geom.contype = geom.conaffinity = 1
+        geom.condim = 4
+        geom.group = COLLISION_GROUP
+        geom.rgba = list(obj.mesh.rgba[:3]) + [0.5]
+    for name, region in obj.regions.items():
+        pieces = region_pieces(obj.mesh.parts, region.kind, region.center, region.size)
+        if not pieces:
+            raise ObjectFileError(f"{obj.name}: field 'regions.{name}' touches none of the mesh's convex parts")
+        for k, piece in enumerate(pieces):
+            RV, RF = convex_triangles(piece)
+            geom = _mesh_geom(spec, body, f"{part_geom_prefix(obj, name)}{k}", RV, RF,
+                              mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX)
+            geom.mass = 0.0
+            geom.contype = geom.conaffinity = 0
+            geom.group = REGION_GROUP
+            geom.rgba = list(REGION_RGBA)
 
 
 def _add_geom(body, obj: ObjectSpec, g, mass_scale: float, total_volume: float) -> None:
@@ -205,7 +301,9 @@ class SceneIndex:
             hand_geoms=np.array(
                 [g for g in range(m.ngeom) if m.geom_bodyid[g] in hand_bodies and m.geom_contype[g]]
             ),
-            object_geoms=np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == obj_body]),
+            # the geoms that collide: a mesh object's visual mesh and region pieces are for looks and queries
+            object_geoms=np.array([g for g in range(m.ngeom) if m.geom_bodyid[g] == obj_body
+                                   and (m.geom_contype[g] or m.geom_conaffinity[g])]),
             fingertip_geoms={f: m.geom(n).id for f, n in FINGERTIP_GEOMS.items()},
         )
 
@@ -236,6 +334,8 @@ def resting_height(m: mujoco.MjModel, seconds: float = 0.3) -> float:
 
     Starting episodes at the rest height keeps that settling out of the object-displacement
     reward and the success test. The hand is parked out of the way while the object settles.
+    A mesh object's frame has its lowest vertex on z = 0 and its convex parts are cut to the mesh's
+    bounding box (``forcegrasp object import``), so it settles the way primitives do.
     """
     d = mujoco.MjData(m)
     ix = SceneIndex.of(m)

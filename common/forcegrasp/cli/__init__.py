@@ -149,6 +149,7 @@ TOOLS = {
     "ship": ("forcegrasp.cli.ship", "copy an experiment's picked policy into assets/policies/ with its record"),
     "report": ("forcegrasp.cli.report", "the paper's experiments on the shipped policies: docs/results.md and figures"),
     "export": ("forcegrasp.cli.export", "export a policy file to ONNX: forcegrasp export FILE --onnx OUT.onnx"),
+    "object": ("forcegrasp.cli.object", "bring your own object: forcegrasp object import FILE --name NAME --mass KG --part ..."),
 }
 
 
