@@ -60,7 +60,7 @@ how the record's `effective` settings and configuration differ from the default 
 object (the "setting" column below). `snapshot-spread/` holds the output of
 `bench/snapshot_spread.py` for one run (not an experiment record: the tables do not read it), and
 `benchmarks/` the logs of the benchmark runs whose figures docs/benchmarks.md quotes (their names
-carry the date: the machine's speed varies between days), with `ff_information.json` the probe
+carry the date: the machine's speed varies between days), with `probes/ff_information.json` the probe
 figures docs/results.md shows.
 """
 

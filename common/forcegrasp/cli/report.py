@@ -251,7 +251,7 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         "fig8": "Robustness against joint-torque noise, 0 to 1 N·m (Fig. 8)",
         "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, with and without force feedback (Fig. 3)",
     }
-    lines += ["", *arms_section(out.parent / "experiments" / "ff_information.json"), "## Figures", ""]
+    lines += ["", *arms_section(out.parent / "experiments" / "probes" / "ff_information.json"), "## Figures", ""]
     for key, caption in captions.items():
         if key in figures:
             lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
