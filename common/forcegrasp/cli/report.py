@@ -207,7 +207,7 @@ def arms_section(probe: Path) -> list[str]:
     lines = ["## What each arm sees", "",
              f"Held-out R² of a linear (ridge) probe from what each observation arm sees, on {first['episodes']} "
              f"episodes per object driven by {first['actions']} actions (`python bench/ff_information.py --json "
-             f"{probe.name}`; 1 = fully recoverable, ≤ 0 = nothing beyond the mean). The `timing` row knows only the "
+             f"experiments/probes/{probe.name}`; 1 = fully recoverable, ≤ 0 = nothing beyond the mean). The `timing` row knows only the "
              "step and the commanded h.", "",
              "| object | arm | observed | torques | hand contact | fingertip contacts | object offset |",
              "|---|---|---:|---:|---:|---:|---:|"]
