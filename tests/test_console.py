@@ -28,6 +28,15 @@ def test_status_line_fits_100_columns_and_names_its_figures():
     assert "waiting for the learner" in status_line({}, 3.0)
 
 
+def test_status_line_shows_how_much_of_the_randomisation_ranges_the_actors_have_opened():
+    stats = {"learner": {"ingested": 5000, "updates": 1200, "success_rate": 0.5},
+             "actor-0": {"steps_per_s": 100.0, "curriculum_level": 0.2},
+             "actor-1": {"steps_per_s": 100.0, "curriculum_level": 0.4}}
+    line = status_line(stats, 60.0)
+    assert "ranges 30% open" in line and len(line) <= 100
+    assert "ranges" not in status_line({**stats, "actor-0": {"steps_per_s": 1.0}, "actor-1": {}}, 60.0)
+
+
 def test_status_is_rewritten_in_place_on_a_terminal_and_plain_in_a_log():
     out = []
 

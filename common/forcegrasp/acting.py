@@ -16,6 +16,8 @@ the same process.
   has weights), then samples from its policy; one batched forward pass serves all its envs.
 - Finished episodes reset at once; the transition keeps the true last observation, with
   ``terminated`` marking real terminal states.
+- With ``env.curriculum_success`` its envs start at the fixed training conditions and the
+  randomisation ranges open as its policy episodes succeed (`forcegrasp.curriculum`).
 - With the learner's ``n_step`` > 1 transitions leave through per-env n-step accumulators, with
   ``privileged_critic`` they carry the simulator state the critic sees (read from the same
   configuration as the learner).
@@ -29,6 +31,7 @@ import numpy as np
 
 from forcegrasp import task
 from forcegrasp.config import Config
+from forcegrasp.curriculum import RandomisationCurriculum
 from forcegrasp.nstep import NStepAccumulator
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyMetadata
@@ -50,6 +53,10 @@ class Actor:
         self.env_objects = assign_objects(self.objects, n, actor_index(actor_id))
         self._object_ix = np.array([self.objects.index(o) for o in self.env_objects], np.uint8)
         self.envs = [make_env(config, o) for o in self.env_objects]
+        e = config.env
+        self.curriculum = (RandomisationCurriculum(e.curriculum_success, e.curriculum_window, e.curriculum_stages)
+                           if e.curriculum_success else None)
+        self._set_level()
         if len(set(self.env_objects)) < len(self.objects):  # fine if other actors step the rest
             logging.getLogger("forcegrasp.actor").warning(
                 "actor %s: %d envs step %s of the %d objects %s", actor_id, n,
@@ -76,6 +83,12 @@ class Actor:
         self._demos_left = [demo_episodes(o, config.actor.demo_episodes) for o in self.env_objects]
         self._demo = [self._new_demo(i) for i in range(n)]
         self.demo_episodes = self.demo_successes = 0
+
+    def _set_level(self) -> None:
+        """Every env draws its next episode's conditions at the curriculum's level."""
+        if self.curriculum is not None:
+            for env in self.envs:
+                env.randomisation_level = self.curriculum.level
 
     def _new_demo(self, i: int) -> ScriptedApproach | None:
         """The scripted approach for env `i`'s new episode while it still owes demonstrations."""
@@ -138,6 +151,8 @@ class Actor:
                     self.successes += bool(info["success"])
                     self.by_object[self.env_objects[i]]["episodes"] += 1
                     self.by_object[self.env_objects[i]]["successes"] += bool(info["success"])
+                    if self.curriculum is not None and self.curriculum.record(info["success"]):
+                        self._set_level()
                 self._returns[i], self._lengths[i] = 0.0, 0
                 next_obs, _ = env.reset()
                 self._demo[i] = self._new_demo(i)
@@ -177,6 +192,7 @@ class Actor:
         return {"steps": self.steps, "episodes": self.episodes, "successes": self.successes,
                 "demo_episodes": self.demo_episodes,
                 "demo_successes": self.demo_successes, "policy_version": self.policy_version,
+                **({"curriculum_level": self.curriculum.level} if self.curriculum is not None else {}),
                 **({"objects": {o: dict(v) for o, v in self.by_object.items()}} if len(self.objects) > 1 else {})}
 
     def close(self) -> None:

@@ -68,6 +68,11 @@ class EnvConfig:
                                            "(empty: mass_scale in every episode)")
     torque_noise_range: list[float] = _f([], "per-episode torque noise sigma drawn uniformly from [low, high] N*m "
                                              "(empty: torque_noise_std in every episode)")
+    curriculum_success: float = _f(0.0, "open the randomisation ranges in curriculum_stages steps from the fixed values, "
+                                        "each once an actor's last curriculum_window policy episodes succeeded this "
+                                        "often (forcegrasp.curriculum; 0: the full ranges from the first episode)", min=0.0)
+    curriculum_window: int = _f(100, "policy episodes per actor that decide each curriculum stage", min=1)
+    curriculum_stages: int = _f(5, "steps from the fixed values to the full randomisation ranges", min=1)
     max_steps: int = _f(200, "episode length limit", min=1)
     torque_history: int = _f(0, "joint torques of this many previous steps added to the observation (24 each; "
                                 "changes Table I: a lever reported apart, never the default)", min=0)
@@ -339,6 +344,10 @@ def _check_cross_fields(config: Config) -> None:
         if span and (len(span) != 2 or span[0] > span[1] or span[0] < 0 or (low is not None and span[0] <= low)):
             raise ConfigError(f"env.{key} = {span!r} must be empty or [low, high] with "
                               f"{'0 < low' if low is not None else '0 <= low'} <= high")
+    if config.env.curriculum_success > 1 or (config.env.curriculum_success and not (
+            config.env.mass_scale_range or config.env.torque_noise_range)):
+        raise ConfigError(f"env.curriculum_success = {config.env.curriculum_success!r} must be in [0, 1] and needs "
+                          "env.mass_scale_range or env.torque_noise_range to open")
     from forcegrasp.conditions import check_conditions
     from forcegrasp.recipes import sac_config
 

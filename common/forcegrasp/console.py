@@ -47,7 +47,10 @@ def status_line(stats: dict, elapsed_s: float, width: int = WIDTH) -> str:
              "actors": f"{len(actors)} actors", "updates": f"{_k(learner['updates'])} updates",
              "online": "online success " + ("-" if online is None else f"{online:.0%}"),
              "best": f"best held-out {best}"}
-    for optional in ("actors", "updates"):
+    levels = [a["curriculum_level"] for a in actors if "curriculum_level" in a]
+    if levels:  # the randomisation curriculum (forcegrasp.curriculum): how much of the ranges is open
+        parts["ranges"] = f"ranges {sum(levels) / len(levels):.0%} open"
+    for optional in ("actors", "updates", "ranges"):
         if len(" | ".join(parts.values())) <= width:
             break
         del parts[optional]

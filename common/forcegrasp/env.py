@@ -48,7 +48,7 @@ import numpy as np
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
 from forcegrasp.reward import Outcome, RewardWeights, evaluate_state, observed_h  # noqa: F401  (part of this module's API)
-from forcegrasp.sampling import draw_clear_offset, span as checked_range  # noqa: F401  (draw_clear_offset: part of this module's API)
+from forcegrasp.sampling import draw_clear_offset, span as checked_range, widened  # noqa: F401  (draw_clear_offset: API)
 from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
     ACTION_LAYOUT,
@@ -125,6 +125,7 @@ class FunctionalGraspEnv(gym.Env):
         self.ix = SceneIndex.of(self.model)
         # This episode's conditions: the fixed settings, or per-episode draws from the ranges.
         self.episode_mass_scale, self.episode_noise_std = self.mass_scale, self.torque_noise_std
+        self.randomisation_level = 1.0  # how much of the ranges is open (forcegrasp.curriculum); 1: all
         body = self.ix.object_body
         self._unit_mass = self.model.body_mass[body] / self.mass_scale
         self._unit_inertia = self.model.body_inertia[body] / self.mass_scale
@@ -277,12 +278,15 @@ class FunctionalGraspEnv(gym.Env):
         raise ValueError(f"action {what}")
 
     def _draw_conditions(self) -> None:
-        """Draw this episode's mass (log-uniform) and torque-noise sigma (uniform) from their ranges;
-        a uniform density scales mass and inertia alike, and mj_setConst refreshes what depends on them."""
+        """Draw this episode's mass (log-uniform) and torque-noise sigma (uniform) from the part of
+        their ranges ``randomisation_level`` opens (`widened`); a uniform density scales mass and
+        inertia alike, and mj_setConst refreshes what depends on them."""
+        level = self.randomisation_level
         if self.torque_noise_range is not None:
-            self.episode_noise_std = float(self.np_random.uniform(*self.torque_noise_range))
+            self.episode_noise_std = float(self.np_random.uniform(*widened(self.torque_noise_std,
+                                                                          self.torque_noise_range, level)))
         if self.mass_scale_range is not None:
-            low, high = np.log(self.mass_scale_range)
+            low, high = np.log(widened(self.mass_scale, self.mass_scale_range, level, log=True))
             self.set_mass_scale(float(np.exp(self.np_random.uniform(low, high))))
 
     def set_mass_scale(self, scale: float) -> None:

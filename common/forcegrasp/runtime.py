@@ -95,7 +95,7 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
                                 torque_history=config.env.torque_history,
                                 proprioception=config.env.proprioception,
                                 extra={"run": config.run.name, "training_conditions": training_conditions(config),
-                                       **extra})
+                                       **curriculum_of(config), **extra})
 
 
 def training_conditions(config: Config) -> dict:
@@ -104,3 +104,12 @@ def training_conditions(config: Config) -> dict:
     e = config.env
     return {"mass_scale": e.mass_scale, "torque_noise_std": e.torque_noise_std, "jitter": e.jitter,
             "mass_scale_range": list(e.mass_scale_range), "torque_noise_range": list(e.torque_noise_range)}
+
+
+def curriculum_of(config: Config) -> dict:
+    """The randomisation curriculum a policy was trained with, for its file (empty when off)."""
+    e = config.env
+    if not e.curriculum_success:
+        return {}
+    return {"randomisation_curriculum": {"success": e.curriculum_success, "window": e.curriculum_window,
+                                         "stages": e.curriculum_stages}}

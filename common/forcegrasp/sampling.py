@@ -29,3 +29,12 @@ def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, wh
             return offset
     raise RuntimeError(f"{what}: the pre-grasp hand overlaps the object at {MAX_OFFSET_DRAWS} random offsets "
                        "in a row; relabel the pre-grasp")
+
+
+def widened(nominal: float, full: tuple[float, float], level: float, *, log: bool = False) -> tuple[float, float]:
+    """The part of a randomisation range a curriculum has opened: each bound moves from ``nominal``
+    (level 0: the fixed training value) to the full range's bound (level 1), in log space for a
+    scale such as mass."""
+    f = (np.log, np.exp) if log else (float, float)
+    lo, hi = (f[1](f[0](nominal) + level * (f[0](bound) - f[0](nominal))) for bound in full)
+    return float(min(lo, hi)), float(max(lo, hi))
