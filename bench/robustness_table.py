@@ -30,6 +30,8 @@ def randomisation(record: dict) -> str:
     if env.get("torque_noise_range"):
         low, high = env["torque_noise_range"]
         parts.append(f"noise {low:g}–{high:g} N·m")
+    if env.get("curriculum_success"):
+        parts.append(f"opened at {env['curriculum_success']:.0%} success")
     demos = record.get("effective", {}).get("demo_episodes")
     if demos is not None and demos != 4:
         parts.append(f"{demos} demonstrations")

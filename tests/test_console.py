@@ -37,6 +37,14 @@ def test_status_line_shows_how_much_of_the_randomisation_ranges_the_actors_have_
     assert "ranges" not in status_line({**stats, "actor-0": {"steps_per_s": 1.0}, "actor-1": {}}, 60.0)
 
 
+def test_status_line_of_a_multi_object_run_names_its_worst_object_online():
+    learner = {"ingested": 5000, "updates": 1200, "success_rate": 0.6,
+               "objects": {"mug": {"episodes": 30, "success_rate": 0.8}, "camera": {"episodes": 20, "success_rate": 0.4},
+                           "power_drill": {"episodes": 0, "success_rate": None}}}
+    line = status_line({"learner": learner, "actor-0": {"steps_per_s": 100.0}}, 60.0)
+    assert "online success 60% (worst camera 40%)" in line and len(line) <= 100
+
+
 def test_status_is_rewritten_in_place_on_a_terminal_and_plain_in_a_log():
     out = []
 

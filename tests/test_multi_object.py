@@ -321,3 +321,27 @@ def test_a_policy_file_records_its_objects_and_eval_runs_it_on_each(tmp_path, ca
     # a single-object run's policy is as before: its object, no set
     single = policy_metadata(load_config(env={}, overrides=["env.object=camera"]), (8,))
     assert single.object_name == "camera" and "objects" not in single.extra and policy_objects(single) == ["camera"]
+
+
+def test_experiment_marks_of_a_multi_object_run_are_tested_on_each_object(tmp_path):
+    """`forcegrasp experiment` tests a generalist's marks on every object (under every condition) and
+    aggregates them as the run's evaluator ranks them (the minimum by default)."""
+    from forcegrasp.cli.experiment import summary_lines, test_marks
+
+    config = config_of(objects=["camera", "mug"])
+    meta = policy_metadata(config, (8,))
+    (tmp_path / "marks").mkdir()
+    weights = {k: np.full(s, 0.05, np.float32) for k, s in actor_param_shapes(meta).items()}
+    (tmp_path / "marks" / "best-001.0.safetensors").write_bytes(policy_to_bytes(weights, meta))
+    record = {"label": "generalist", "seed": 0, "episodes": 2, "test_seed": 0, "test_env": {"max_steps": 20},
+              "conditions": ["5x", "noise_0.5"], "objects": ["camera", "mug"], "object_aggregate": "min",
+              "marks": [{"minute": 1.0, "files": {"best": "best-001.0.safetensors"}, "steps": {}, "test": {}}]}
+    test_marks(tmp_path, record, workers=1, log=lambda m: None)
+    score = record["marks"][0]["test"]["best"]
+    each = score["objects"]
+    assert list(each) == ["camera", "mug"] and score["episodes"] == 8
+    assert all(set(e["conditions"]) == {"5x", "noise_0.5"} and e["episodes"] == 4 for e in each.values())
+    assert score["mean_return"] == min(e["mean_return"] for e in each.values())
+    assert score["success_rate"] == min(e["success_rate"] for e in each.values())
+    assert each["camera"]["mean_return"] != each["mug"]["mean_return"]  # really two objects' episodes
+    assert "the min over objects camera, mug" in summary_lines(record)[0] and "camera " in summary_lines(record)[1]

@@ -45,7 +45,7 @@ def status_line(stats: dict, elapsed_s: float, width: int = WIDTH) -> str:
             f"{ev['best_success_rate']:.0%} (step {_k(ev['best_step'])})")
     parts = {"time": f"{elapsed_s / 60:.1f} min", "steps": f"{_k(learner['ingested'])} env steps, {rate:.0f}/s",
              "actors": f"{len(actors)} actors", "updates": f"{_k(learner['updates'])} updates",
-             "online": "online success " + ("-" if online is None else f"{online:.0%}"),
+             "online": "online success " + ("-" if online is None else f"{online:.0%}") + _worst(learner),
              "best": f"best held-out {best}"}
     levels = [a["curriculum_level"] for a in actors if "curriculum_level" in a]
     if levels:  # the randomisation curriculum (forcegrasp.curriculum): how much of the ranges is open
@@ -55,6 +55,15 @@ def status_line(stats: dict, elapsed_s: float, width: int = WIDTH) -> str:
             break
         del parts[optional]
     return " | ".join(parts.values())[:width]
+
+
+def _worst(learner: dict) -> str:
+    """`` (worst NAME 40%)`` when the learner reports several objects' online success (env.objects)."""
+    rates = {o: v["success_rate"] for o, v in (learner.get("objects") or {}).items() if v.get("success_rate") is not None}
+    if not rates:
+        return ""
+    name = min(rates, key=rates.get)
+    return f" (worst {name} {rates[name]:.0%})"
 
 
 def read_checkpoint_step(path: Path) -> int | None:

@@ -167,17 +167,20 @@ class FunctionalGraspEnv(gym.Env):
         self._fingertips = [self.ix.fingertip_geoms[f] for f in ("ff", "mf", "rf", "lf", "th")]
 
     @classmethod
-    def for_policy(cls, meta, **kwargs) -> "FunctionalGraspEnv":
+    def for_policy(cls, meta, object_name: str | None = None, **kwargs) -> "FunctionalGraspEnv":
         """The env a policy file was trained for: its object, observation (force feedback, torque
         history, proprioception), action step sizes and training conditions (mass, noise, jitter and
         their per-episode ranges; ``meta`` is its PolicyMetadata). ``kwargs`` set everything else and
         override what the file records; a fixed ``mass_scale`` or ``torque_noise_std`` turns the
-        recorded range off (a test condition never randomises)."""
+        recorded range off (a test condition never randomises). ``object_name`` picks the object of a
+        multi-object policy (whose file names none)."""
         recorded = dict(meta.extra.get("training_conditions") or {})
         for fixed, span in (("mass_scale", "mass_scale_range"), ("torque_noise_std", "torque_noise_range")):
             if fixed in kwargs or not recorded.get(span):
                 recorded.pop(span, None)
-        return cls(meta.object_name, **{"force_feedback": meta.force_feedback, "torque_history": torque_history_of(meta),
+        if not (object_name or meta.object_name):
+            raise ValueError("a policy of several objects: name the object to build its env for")
+        return cls(object_name or meta.object_name, **{"force_feedback": meta.force_feedback, "torque_history": torque_history_of(meta),
                                         "proprioception": proprioception_of(meta), **action_steps_of(meta),
                                         **recorded, **kwargs})
 

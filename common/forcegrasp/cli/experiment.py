@@ -196,8 +196,11 @@ def add_online(run_dir: Path, record: dict) -> None:
 def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
     """Score every frozen file of every mark that has no score yet, then save the record. With test
     conditions (``record["conditions"]``) each file is tested under each one, on the same placements
-    per condition, and its score is their mean (`forcegrasp.conditions.mix`)."""
+    per condition, and its score is their mean (`forcegrasp.conditions.mix`); with several objects
+    (``record["objects"]``) on each object, and the figures aggregate over objects as the run's
+    evaluator ranked them (``record["object_aggregate"]``, `forcegrasp.multi_object`)."""
     from forcegrasp.conditions import ConditionScore, env_kwargs, mix
+    from forcegrasp.multi_object import aggregate
 
     add_online(run_dir, record)
     todo = [(m, kind) for m in record["marks"] for kind in m["files"] if kind not in m["test"]]
@@ -205,26 +208,37 @@ def test_marks(run_dir: Path, record: dict, workers: int, log=print) -> None:
         return
     paths = [RunDir(run_dir).marks / m["files"][kind] for m, kind in todo]
     base = record.get("test_env", {})
-    conditions = record.get("conditions") or []
-    if not conditions:
-        scores = test_files(paths, record["episodes"], record["test_seed"], base, workers, log)
-    else:
-        per = {c: test_files(paths, record["episodes"], record["test_seed"], env_kwargs(c, base), workers,
-                             lambda msg, c=c: log(f"{c}: {msg}")) for c in conditions}
-        scores = []
-        for i in range(len(paths)):
-            parts = {c: per[c][i] for c in conditions}
-            mixed = mix({c: ConditionScore(p["mean_return"], p["success_rate"], p["episodes"]) for c, p in parts.items()})
-            scores.append({"episodes": mixed.episodes, "success_rate": mixed.success_rate,
-                           "mean_return": mixed.score, "conditions": parts})
-    for (m, kind), s in zip(todo, scores):
-        m["test"][kind] = s
+    conditions, objects = record.get("conditions") or [None], record.get("objects") or [None]
+    per = {(o, c): test_files(paths, record["episodes"], record["test_seed"],
+                              {**(env_kwargs(c, base) if c else base), **({"object_name": o} if o else {})}, workers,
+                              lambda msg, what=" ".join(x for x in (o, c) if x): log(f"{what}: {msg}" if what else msg))
+           for o in objects for c in conditions}
+
+    def score(o, i) -> dict:  # one file on one object: its conditions' mean
+        if conditions == [None]:
+            return per[(o, None)][i]
+        parts = {c: per[(o, c)][i] for c in conditions}
+        mixed = mix({c: ConditionScore(p["mean_return"], p["success_rate"], p["episodes"]) for c, p in parts.items()})
+        return {"episodes": mixed.episodes, "success_rate": mixed.success_rate, "mean_return": mixed.score,
+                "conditions": parts}
+
+    how = record.get("object_aggregate", "min")
+    for i, (m, kind) in enumerate(todo):
+        if objects == [None]:
+            m["test"][kind] = score(None, i)
+            continue
+        each = {o: score(o, i) for o in objects}
+        m["test"][kind] = {"episodes": sum(e["episodes"] for e in each.values()),
+                           **{k: aggregate([e[k] for e in each.values()], how) for k in ("success_rate", "mean_return")},
+                           "objects": each}
     save_record(run_dir, record)
 
 
 def summary_lines(record: dict) -> list[str]:
     under = (f"the mean over conditions {', '.join(record['conditions'])}" if record.get("conditions")
              else "the run's own env settings")
+    if record.get("objects"):
+        under += f", the {record.get('object_aggregate', 'min')} over objects {', '.join(record['objects'])}"
     lines = [f"{record['label']} (seed {record['seed']}): held-out success on {record['episodes']} placements, "
              f"{under}"]
     for m in record["marks"]:
@@ -232,6 +246,8 @@ def summary_lines(record: dict) -> list[str]:
         cells = [f"{kind} {t[kind]['success_rate']:.0%} (step {m['steps'].get(kind)})"
                  + (" [" + ", ".join(f"{c} {p['success_rate']:.0%}" for c, p in t[kind]["conditions"].items()) + "]"
                     if "conditions" in t[kind] else "")
+                 + (" [" + ", ".join(f"{o} {p['success_rate']:.0%}" for o, p in t[kind]["objects"].items()) + "]"
+                    if "objects" in t[kind] else "")
                  for kind in ("best", "latest") if kind in t]
         if "online" in m:
             cells.append(f"online {m['online']['success_rate']:.0%} (actors' last 100 episodes)")
@@ -266,6 +282,9 @@ def run_experiment(config, minutes: float, mark_every: float, episodes: int, tes
         # the test conditions of the marks (forcegrasp.conditions): the evaluator's, so that marks
         # are scored on what the run selects for
         "conditions": list(config.evaluator.conditions),
+        # a multi-object run's objects and how their figures combine, as its evaluator ranks them
+        **({"objects": list(config.env.objects), "object_aggregate": config.evaluator.object_aggregate}
+           if len(config.env.objects) > 1 else {}),
     }
     record["minutes"] = minutes  # a resumed experiment may be given a longer budget
     save_record(run_dir, record)

@@ -5,12 +5,14 @@ over Zenoh, collects the episodes the actor reports in its transition batches, a
 policy offline (sampled actions, random placements, the actor's own env settings) for as many
 episodes. With weights frozen, the two rates must agree within sampling error: if they do, a gap
 between the online figure and held-out tests during training comes from the weights changing
-under the actors, not from bookkeeping.
+under the actors, not from bookkeeping. A multi-object policy is compared object by object (the
+actor's envs go round its objects; each ended episode says which it was).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import subprocess
 import sys
@@ -26,27 +28,34 @@ def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> float:
     return 0.0 if se == 0 else (k1 / n1 - k2 / n2) / se
 
 
-def offline_successes(policy_path: Path, episodes: int, seed: int = 12345, mass_scale: float = 5.0) -> list[bool]:
-    """Episodes the way an actor runs them: sampled actions, random placements, resets in a row."""
+def offline_successes(policy_path: Path, episodes: int | dict[str, int], seed: int = 12345,
+                      mass_scale: float = 5.0) -> list[bool] | dict[str, list[bool]]:
+    """Episodes the way an actor runs them: sampled actions, random placements, resets in a row;
+    with ``{object: count}`` (a multi-object policy) that many on each object, by object."""
     from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.policy import Policy
 
     policy = Policy.load(policy_path, seed=seed)
-    env = FunctionalGraspEnv.for_policy(policy.metadata, mass_scale=mass_scale)
-    out = []
-    obs, _ = env.reset(seed=seed)
-    while len(out) < episodes:
-        obs, _, terminated, truncated, info = env.step(policy(obs, deterministic=False))
-        if terminated or truncated:
-            out.append(bool(info["success"]))
-            obs, _ = env.reset()
-    return out
+    counts = episodes if isinstance(episodes, dict) else {None: episodes}
+    out: dict = {}
+    for obj, count in counts.items():
+        env = FunctionalGraspEnv.for_policy(policy.metadata, obj, mass_scale=mass_scale)
+        out[obj] = []
+        obs, _ = env.reset(seed=seed)
+        while len(out[obj]) < count:
+            obs, _, terminated, truncated, info = env.step(policy(obs, deterministic=False))
+            if terminated or truncated:
+                out[obj].append(bool(info["success"]))
+                obs, _ = env.reset()
+    return out if isinstance(episodes, dict) else out[None]
 
 
 def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int = 777, timeout_s: float = 600.0,
-                     log=print) -> list[bool]:
-    """Episodes reported by a real actor process acting with the frozen policy file."""
+                     log=print) -> list[bool] | dict[str, list[bool]]:
+    """Episodes reported by a real actor process acting with the frozen policy file; for a
+    multi-object policy (its envs go round the objects) the first ``episodes`` by object."""
     from forcegrasp.config import load_config
+    from forcegrasp.multi_object import policy_objects
     from forcegrasp.policy_file import load_policy_file
     from forcegrasp.task import action_steps_of, proprioception_of
     from forcegrasp.protocol import Keys, ProtocolError, Weights, decode_transitions, encode_weights
@@ -54,16 +63,18 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
                                       open_session)
 
     weights, meta = load_policy_file(policy_path)
+    objects = policy_objects(meta)
     port = free_tcp_port()
     run = "online-check"
     config = load_config(overrides=[
-        f"run.name={run}", f"env.object={meta.object_name}", f"env.force_feedback={str(meta.force_feedback).lower()}",
+        f"run.name={run}", f"env.objects={json.dumps(objects)}", f"env.force_feedback={str(meta.force_feedback).lower()}",
         f"actor.envs_per_actor={envs}", "actor.random_steps=0", "actor.publish_batch=64",
         f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "network.lease_ms=1000",
         f"learner.sac.obs_norm={str(meta.obs_norm).lower()}", f"env.proprioception={proprioception_of(meta)}",
         *(f"env.{k}={v}" for k, v in action_steps_of(meta).items()),  # the file's step sizes, not today's
     ])
     keys = Keys(run)
+    by_object: dict[str, list[bool]] = {o: [] for o in objects}
     payload = encode_weights(Weights(1, 0, weights, meta={"policy_metadata": meta.to_json()}))
     session = open_session([f"tcp/127.0.0.1:{port}"], [])
     inbox = QueueSubscriber(session, keys.all_transitions, maxsize=4096, put_timeout=1.0)
@@ -91,11 +102,13 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
                     continue
                 if batch.policy_version != 1 or not batch.has_episodes:
                     continue  # acted before it had the policy (it asks at start): not this policy's episodes
-                for s in batch.episode_successes:
+                ended = batch.episode_objects if batch.episode_objects is not None else [0] * len(batch.episode_successes)
+                for s, o in zip(batch.episode_successes, ended):
                     if warmup > 0:
                         warmup -= 1
-                    else:
+                    elif len(successes) < episodes:
                         successes.append(bool(s))
+                        by_object[batch.objects[o]].append(bool(s))
         finally:
             proc.terminate()
             try:
@@ -106,7 +119,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
             queryable.undeclare()
             inbox.close()
             close_session(session)
-    return successes[:episodes]
+    return by_object if len(objects) > 1 else successes
 
 
 def main(argv=None) -> int:
@@ -116,13 +129,19 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     online = online_successes(args.policy, args.episodes)
-    offline = offline_successes(args.policy, args.episodes)
-    k1, k2, n = sum(online), sum(offline), args.episodes
-    z = two_proportion_z(k1, n, k2, n)
-    print(f"online (actor process, frozen weights): {k1}/{n} = {k1 / n:.1%}\n"
-          f"offline (same policy, sampled actions):  {k2}/{n} = {k2 / n:.1%}\n"
-          f"difference z = {z:+.2f} ({'within' if abs(z) < 2.576 else 'OUTSIDE'} the 99 % band); "
-          f"{time.perf_counter() - t0:.0f} s")
+    if isinstance(online, dict):  # several objects: each compared on its own episodes
+        offline = offline_successes(args.policy, {o: len(v) for o, v in online.items()})
+        rows = [(o, online[o], offline[o]) for o in online] + [
+            ("all", [x for v in online.values() for x in v], [x for v in offline.values() for x in v])]
+    else:
+        rows = [(None, online, offline_successes(args.policy, args.episodes))]
+    for name, on, off in rows:
+        k1, k2, n = sum(on), sum(off), len(on)
+        z = two_proportion_z(k1, n, k2, n) if n else 0.0
+        print((f"{name}: " if name else "") + f"online (actor process, frozen weights): {k1}/{n} = {k1 / max(n, 1):.1%}\n"
+              f"offline (same policy, sampled actions):  {k2}/{n} = {k2 / max(n, 1):.1%}\n"
+              f"difference z = {z:+.2f} ({'within' if abs(z) < 2.576 else 'OUTSIDE'} the 99 % band)")
+    print(f"{time.perf_counter() - t0:.0f} s")
     return 0
 
 

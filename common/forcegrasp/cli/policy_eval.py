@@ -119,13 +119,10 @@ def _objects_to_test(policy, wanted: list[str] | None) -> list[str]:
 def _env_for(policy, policy_path: Path, kwargs: dict, obj: str | None = None):
     """The env ``policy`` was trained for (on ``obj``, default its first object), with the test
     settings ``kwargs``."""
-    import dataclasses
-
     from forcegrasp.env import FunctionalGraspEnv
 
     meta = policy.metadata
-    meta = dataclasses.replace(meta, object_name=obj or policy_objects(meta)[0])
-    env = FunctionalGraspEnv.for_policy(meta, **kwargs)
+    env = FunctionalGraspEnv.for_policy(meta, obj or policy_objects(meta)[0], **kwargs)
     if env.observation_space.shape[0] != meta.obs_dim:
         raise ValueError(f"{policy_path}: policy expects {meta.obs_dim} observations, the env gives "
                          f"{env.observation_space.shape[0]}")
