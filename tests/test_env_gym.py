@@ -12,7 +12,8 @@ from forcegrasp.env import FunctionalGraspEnv
 from forcegrasp.labels import LabelFileError, load_label, parse_label
 from forcegrasp.objects import ObjectFileError, load_object, parse_object
 
-IDS = ["FunctionalGrasp-SprayBottle-v0", "FunctionalGrasp-PowerDrill-v0", "FunctionalGrasp-Mug-v0", "FunctionalGrasp-Camera-v0"]
+IDS = ["FunctionalGrasp-SprayBottle-v0", "FunctionalGrasp-PowerDrill-v0", "FunctionalGrasp-Mug-v0", "FunctionalGrasp-Camera-v0",
+       "FunctionalGrasp-MugMesh-v0"]  # every object file, an imported mesh too
 
 
 @pytest.mark.parametrize("env_id", IDS)

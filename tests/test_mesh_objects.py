@@ -362,3 +362,25 @@ def test_the_shipped_mesh_mug_has_its_files_notice_and_mass_properties():
     parts = [PV for _, PV, _ in read_obj(obj.mesh.parts)]
     cover = coverage(V, F, parts, samples=4000)
     assert cover["covered"] >= 0.95 and cover["union_over_mesh"] <= 1.3, cover
+
+
+def test_the_scene_of_a_mesh_object_carries_its_visual_mesh_and_functional_part_as_triangles():
+    """Foxglove draws a mesh object from the episode log's /scene: its visual mesh and the functional
+    part's pieces as triangle lists (valid foxglove.SceneUpdate), never the collision parts."""
+    import jsonschema
+
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.mcap_log.messages import scene_json
+    from forcegrasp.mcap_log.schemas import SCHEMAS
+
+    env = FunctionalGraspEnv("mug_mesh")
+    m = env.model
+    scene = json.loads(scene_json(m, env.ix, "mug_mesh"))
+    jsonschema.Draft7Validator(SCHEMAS["foxglove.SceneUpdate"]).validate(scene)
+    (entity,) = [e for e in scene["entities"] if e["id"] == "object"]
+    visual = m.geom_dataid[m.geom("mug_mesh/mesh").id]
+    regions = part_geoms(m, load_object("mug_mesh"), "handle") + part_geoms(m, load_object("mug_mesh"), "handle_top")
+    assert len(entity["triangles"]) == 1 + len(regions)  # the collision parts stay out
+    mesh = entity["triangles"][0]
+    assert len(mesh["points"]) == m.mesh_vertnum[visual] and len(mesh["indices"]) == 3 * m.mesh_facenum[visual]
+    assert max(mesh["indices"]) < len(mesh["points"]) and mesh["color"]["a"] == 1.0

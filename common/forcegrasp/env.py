@@ -415,12 +415,14 @@ class FunctionalGraspEnv(gym.Env):
 
 
 def register_envs() -> None:
-    """Gymnasium ids FunctionalGrasp-<Object>-v0; kwargs pass through to FunctionalGraspEnv."""
+    """Gymnasium ids FunctionalGrasp-<Object>-v0 for every object file, imported meshes included
+    (mug_mesh -> FunctionalGrasp-MugMesh-v0); kwargs pass through to FunctionalGraspEnv."""
     from gymnasium.envs.registration import register, registry
 
-    for object_name, env_name in (("spray_bottle", "SprayBottle"), ("power_drill", "PowerDrill"), ("mug", "Mug"),
-                                  ("camera", "Camera")):
-        env_id = f"FunctionalGrasp-{env_name}-v0"
+    from forcegrasp.objects import list_objects
+
+    for object_name in list_objects():
+        env_id = f"FunctionalGrasp-{''.join(w.capitalize() for w in object_name.split('_'))}-v0"
         if env_id not in registry:
             register(id=env_id, entry_point="forcegrasp.env:FunctionalGraspEnv", kwargs={"object_name": object_name})
 

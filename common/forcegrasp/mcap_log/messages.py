@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from forcegrasp.scene import ALL_JOINTS
+from forcegrasp.scene import ALL_JOINTS, REGION_GROUP, VISUAL_GROUP
 from forcegrasp.mcap_log.schemas import OBJECT_FRAME, SCHEMAS, WORLD, dumps
 
 
@@ -48,7 +48,8 @@ def frames_of(m: mujoco.MjModel, ix) -> _Frames:
     bodies = hand_bodies + [int(ix.object_body)]
     names = [f"hand/{m.body(b).name}" for b in hand_bodies] + [OBJECT_FRAME]
     geoms: dict[int, list[int]] = {b: [] for b in bodies}
-    for g in list(ix.hand_geoms) + list(ix.object_geoms):
+    drawn_object = [g for g in range(m.ngeom) if m.geom_bodyid[g] == ix.object_body]  # a mesh's visual too
+    for g in list(ix.hand_geoms) + drawn_object:
         geoms[int(m.geom_bodyid[g])].append(int(g))
     return _Frames(np.array(bodies), names, geoms)
 
@@ -77,7 +78,14 @@ def _geom_primitives(m: mujoco.MjModel, g: int) -> dict[str, list]:
             out["spheres"] = [{"pose": _pose((m.geom_pos[g] + s * axis).tolist(), quat),
                                "size": {"x": d, "y": d, "z": d}, "color": color} for s in (1.0, -1.0)]
         return out
-    return {}  # meshes, planes: not drawn
+    if gtype == T.mjGEOM_MESH and int(m.geom_group[g]) in (VISUAL_GROUP, REGION_GROUP):  # not the collision parts
+        mesh = int(m.geom_dataid[g])
+        v0, nv = int(m.mesh_vertadr[mesh]), int(m.mesh_vertnum[mesh])
+        f0, nf = int(m.mesh_faceadr[mesh]), int(m.mesh_facenum[mesh])
+        points = [{"x": x, "y": y, "z": z} for x, y, z in np.round(m.mesh_vert[v0:v0 + nv], 5).tolist()]
+        return {"triangles": [{"pose": pose, "points": points, "color": color, "colors": [],
+                               "indices": m.mesh_face[f0:f0 + nf].ravel().tolist()}]}
+    return {}  # planes and the hand's visual meshes (its collision primitives are drawn): not drawn
 
 
 # --------------------------------------------------------------------------------------------
@@ -193,7 +201,7 @@ def scene_json(m: mujoco.MjModel, ix, object_name: str) -> str:
     entities = []
     for body, frame in zip(frames.bodies, frames.names):
         entity = {"timestamp": stamp, "frame_id": frame, "id": frame, "lifetime": {"sec": 0, "nsec": 0},
-                  "frame_locked": True, "metadata": [], "cubes": [], "spheres": [], "cylinders": []}
+                  "frame_locked": True, "metadata": [], "cubes": [], "spheres": [], "cylinders": [], "triangles": []}
         for g in frames.geoms[int(body)]:
             for kind, prims in _geom_primitives(m, g).items():
                 entity[kind].extend(prims)

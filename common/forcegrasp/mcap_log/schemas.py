@@ -39,6 +39,7 @@ _BOOL = {"type": "boolean"}
 _TIME = _obj({"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}},
              title="time")
 _VEC3 = _obj({"x": _NUM, "y": _NUM, "z": _NUM}, title="foxglove.Vector3")
+_POINT3 = _obj({"x": _NUM, "y": _NUM, "z": _NUM}, title="foxglove.Point3")
 _QUAT = _obj({"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM}, title="foxglove.Quaternion")
 _POSE = _obj({"position": _VEC3, "orientation": _QUAT}, title="foxglove.Pose")
 _COLOR = _obj({"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM}, title="foxglove.Color")
@@ -68,6 +69,8 @@ SCHEMAS: dict[str, dict] = {
         "spheres": _array(_obj({"pose": _POSE, "size": _VEC3, "color": _COLOR}, title="foxglove.SpherePrimitive")),
         "cylinders": _array(_obj({"pose": _POSE, "size": _VEC3, "bottom_scale": _NUM, "top_scale": _NUM,
                                   "color": _COLOR}, title="foxglove.CylinderPrimitive")),
+        "triangles": _array(_obj({"pose": _POSE, "points": _array(_POINT3), "color": _COLOR, "colors": _array(_COLOR),
+                                  "indices": _array(_INT)}, title="foxglove.TriangleListPrimitive")),
     }, required=["timestamp", "frame_id", "id", "frame_locked"], title="foxglove.SceneEntity"))},
         required=["entities"]),
     "forcegrasp.Command": _obj({
