@@ -101,3 +101,25 @@ def test_bad_curriculum_settings_are_configuration_errors(bad, message):
 def test_a_curriculum_without_a_range_to_open_is_a_configuration_error():
     with pytest.raises(ConfigError, match="needs env.mass_scale_range"):
         load_config(env={}, overrides=["env.curriculum_success=0.7"])
+
+
+def test_the_learner_reports_how_far_the_recent_draws_reach(tmp_path):
+    """The learner reads each batch's privileged "domain" (ln mass scale, noise sigma): its stats and
+    TensorBoard say the lightest mass and largest noise of the recent transitions, so a record shows
+    how far a curriculum had opened the ranges at each mark."""
+    from forcegrasp import task
+    from forcegrasp.protocol import TransitionBatch, encode_transitions
+    from forcegrasp_learner.learner import LearnerService
+
+    config = _config(f"run.output_dir={tmp_path}", "learner.sac.hidden=[8, 8]", "learner.sac.privileged_critic=true")
+    learner = LearnerService(config)
+    rng = np.random.default_rng(0)
+    priv = rng.standard_normal((6, task.PRIV_DIM)).astype(np.float32)
+    mass, noise = np.array([5.0, 2.0, 0.8, 5.0, 1.0, 3.0]), np.array([0.0, 0.1, 0.3, 0.0, 0.05, 0.2])
+    priv[:, task.DOMAIN] = np.stack([np.log(mass), noise], axis=1)
+    batch = TransitionBatch("actor-0", 0, 0, rng.standard_normal((6, 77)), rng.uniform(-1, 1, (6, 7)),
+                            rng.standard_normal(6), rng.standard_normal((6, 77)), np.zeros(6, bool), np.zeros(6, bool),
+                            objects=["mug"], object_index=np.zeros(6, np.uint8), privileged=priv, next_privileged=priv)
+    assert learner.ingest(learner.keys.transitions("actor-0"), encode_transitions(batch)) == 6
+    stats = learner.stats(1.0, 0, 0)
+    assert stats["mass_scale_min"] == pytest.approx(0.8) and stats["noise_std_max"] == pytest.approx(0.3)

@@ -51,17 +51,8 @@ from forcegrasp.reward import Outcome, RewardWeights, evaluate_state, observed_h
 from forcegrasp.sampling import draw_clear_offset, span as checked_range, widened  # noqa: F401  (draw_clear_offset: API)
 from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
-    ACTION_LAYOUT,
-    ACTION_STEPS,
-    COMMANDED_SLOTS,
-    OBS_LAYOUT,
-    PRIV_DIM,
-    PRIVILEGED_LAYOUT,
-    action_scale,
-    action_steps_of,
-    observation_layout,
-    proprioception_of,
-    torque_history_of,
+    ACTION_LAYOUT, ACTION_STEPS, COMMANDED_SLOTS, DOMAIN, OBS_LAYOUT, PRIV_DIM, PRIVILEGED_LAYOUT, action_scale,
+    action_steps_of, observation_layout, proprioception_of, torque_history_of,
 )
 
 # A jittered placement is usable when the pre-grasp hand does not start inside the object (deeper
@@ -339,7 +330,7 @@ class FunctionalGraspEnv(gym.Env):
             for k, geom in enumerate(self._fingertips):
                 out[8 + k] = float((other == geom).any())
             out[13] = float(self._is_hand_geom[other].any())
-        out[14:16] = np.log(self.episode_mass_scale), self.episode_noise_std
+        out[DOMAIN] = np.log(self.episode_mass_scale), self.episode_noise_std
         return out
 
     def palm_position(self) -> np.ndarray:

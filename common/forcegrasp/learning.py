@@ -49,6 +49,9 @@ class Learner:
         self.by_object = {o: collections.deque(maxlen=100) for o in self.objects}  # success of the last 100 each
         self.object_episodes = dict.fromkeys(self.objects, 0)
         self.episode_count = 0
+        # the conditions the recent transitions were drawn under (privileged "domain": ln mass scale,
+        # noise sigma), per batch: how far a randomisation curriculum has opened the ranges
+        self.recent_domain: collections.deque = collections.deque(maxlen=200)
         self.ingested = 0
         self.policy_version = 0
         self.updates_due = 0.0
@@ -99,6 +102,9 @@ class Learner:
         self.buffer.add_batch(batch.obs, batch.action, batch.reward, batch.next_obs, batch.terminated,
                               batch.horizon, batch.privileged, batch.next_privileged)
         self.ingested += batch.n
+        if batch.privileged is not None:
+            domain = batch.privileged[:, task.DOMAIN]
+            self.recent_domain.append((float(np.exp(domain[:, 0].min())), float(domain[:, 1].max())))
         if batch.has_episodes:
             names = ([batch.objects[i] for i in batch.episode_objects] if batch.episode_objects is not None
                      else [None] * len(batch.episode_returns))  # a sender that names no object
@@ -156,6 +162,9 @@ class Learner:
         out = {"episodes": self.episode_count,
                "return_mean": float(np.mean([e[0] for e in episodes])) if episodes else None,
                "success_rate": float(np.mean([e[2] for e in episodes])) if episodes else None}
+        if self.recent_domain:
+            out["mass_scale_min"] = min(m for m, _ in self.recent_domain)
+            out["noise_std_max"] = max(n for _, n in self.recent_domain)
         if len(self.objects) > 1:
             out["objects"] = {o: {"episodes": self.object_episodes[o],
                                   "success_rate": float(np.mean(d)) if d else None} for o, d in self.by_object.items()}
@@ -186,6 +195,9 @@ class Learner:
         for key in ("return_mean", "success_rate"):
             if values[key] is not None:
                 writer.add_scalar(f"actors/{key}_100", values[key], step)
+        for key in ("mass_scale_min", "noise_std_max"):  # over the last 200 batches
+            if key in values:
+                writer.add_scalar(f"actors/{key}", values[key], step)
         for name, v in values.get("objects", {}).items():
             if v["success_rate"] is not None:
                 writer.add_scalar(f"actors/{name}/success_rate_100", v["success_rate"], step)

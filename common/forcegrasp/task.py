@@ -57,6 +57,7 @@ PRIVILEGED_LAYOUT = (
     ("domain", 2),  # this episode's ln(mass scale) and torque-noise sigma (N*m): the randomised conditions
 )
 PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
+DOMAIN = slice(PRIV_DIM - 2, PRIV_DIM)  # the "domain" entry, last
 
 #: Largest change per step of the base translation targets (m), rotation targets (rad) and h: the
 #: recipe's default (docs/recipe.md).
