@@ -30,6 +30,8 @@ def randomisation(record: dict) -> str:
     if env.get("torque_noise_range"):
         low, high = env["torque_noise_range"]
         parts.append(f"noise {low:g}–{high:g} N·m")
+    if env.get("torque_filter", 1.0) < 1:
+        parts.append(f"torque filter {env['torque_filter']:g}")
     if env.get("curriculum_success"):
         parts.append(f"opened at {env['curriculum_success']:.0%} success")
     demos = record.get("effective", {}).get("demo_episodes")

@@ -76,6 +76,9 @@ class EnvConfig:
     max_steps: int = _f(200, "episode length limit", min=1)
     torque_history: int = _f(0, "joint torques of this many previous steps added to the observation (24 each; "
                                 "changes Table I: a lever reported apart, never the default)", min=0)
+    torque_filter: float = _f(1.0, "weight of the newest reading in an exponential moving average of the observed "
+                                   "torques, noise included (1: the raw reading of Table I; < 1: a low-pass filter, "
+                                   "a lever reported apart)", min=0.01)
     proprioception: str = _f("measured", "measured (Table I) or commanded: the servo targets and h the policy sent in "
                              "place of the measured angles, pose and h (a lever apart)", choices=PROPRIOCEPTION)
     # Action step sizes: what action +1 moves per step (a recipe lever; policy files record them;
@@ -357,6 +360,9 @@ def _check_cross_fields(config: Config) -> None:
         check_conditions(config.evaluator.conditions, "evaluator.conditions")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if config.env.torque_filter > 1 or (config.env.torque_filter < 1 and not config.env.force_feedback):
+        raise ConfigError(f"env.torque_filter = {config.env.torque_filter!r} must be in (0, 1] (1: no filter), "
+                          "and below 1 only with env.force_feedback = true (it filters the observed torques)")
     if config.env.torque_history and not config.env.force_feedback:
         raise ConfigError("env.torque_history needs env.force_feedback = true: without it no torques are observed")
     if not config.network.learner_listen:

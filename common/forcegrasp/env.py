@@ -26,6 +26,8 @@ and one step before. Commanded without force feedback, nothing observed depends 
 rewards, success and ``info["h"]`` stay measured. With ``torque_history`` k > 0 (a recipe lever
 outside Table I, never the default) a ``torque_history`` segment of 24 k follows ``joint_torques``:
 the torques observed at the k previous steps, newest first (at reset, copies of the first reading).
+With ``torque_filter`` a < 1 (a lever outside Table I, reported apart) the torques observed are an
+exponential moving average of the readings, noise included: a reading + (1 - a) the last observed.
 
 Action (7, in [-1, 1]): increments of the 6 base targets (scaled by ``max_translation_step`` m
 and ``max_rotation_step`` rad) and of the commanded h (by ``max_h_step``); the 24 hand joints
@@ -85,6 +87,7 @@ class FunctionalGraspEnv(gym.Env):
         max_rotation_step: float = ACTION_STEPS[1],
         max_h_step: float = ACTION_STEPS[2],
         torque_history: int = 0,
+        torque_filter: float = 1.0,
         proprioception: str = "measured",
         mass_scale_range: tuple[float, float] | None = None,
         torque_noise_range: tuple[float, float] | None = None,
@@ -103,6 +106,9 @@ class FunctionalGraspEnv(gym.Env):
         self.object_spec = load_object(object_name)
         self.label = label if label is not None else load_label(object_name)
         self.force_feedback, self.torque_history = bool(force_feedback), int(torque_history)
+        if not 0.0 < torque_filter <= 1.0:
+            raise ValueError(f"torque_filter must be in (0, 1], got {torque_filter!r}")
+        self.torque_filter = float(torque_filter)
         self.proprioception, self._commanded = proprioception, proprioception == "commanded"
         self.mass_scale, self.jitter, self.torque_noise_std = float(mass_scale), float(jitter), float(torque_noise_std)
         self.frame_skip, self.max_steps = int(frame_skip), int(max_steps)
@@ -307,9 +313,10 @@ class FunctionalGraspEnv(gym.Env):
             if self.torque_history:  # shift by one step: the torques observed last go in front
                 obs[at["torque_history"]] = np.roll(obs[at["torque_history"]], 24)
                 obs[at["torque_history"]][:24] = obs[at["joint_torques"]]
-            obs[at["joint_torques"]] = self._hand_force
-            if self.episode_noise_std > 0:
-                obs[at["joint_torques"]] += self.np_random.normal(0.0, self.episode_noise_std, 24)
+            reading = self._hand_force + (self.np_random.normal(0.0, self.episode_noise_std, 24)
+                                          if self.episode_noise_std > 0 else 0.0)
+            a = self.torque_filter if self.steps else 1.0  # an episode's first reading starts the average
+            obs[at["joint_torques"]] = a * reading + (1.0 - a) * obs[at["joint_torques"]]
         obs[at["base_targets"]] = self.base_target
         for slot, value in zip(self._proprio, (self._hand_ctrl, self.base_target, self.h_command, self._prev_target,
                                                self._prev_h_command) if self._commanded else

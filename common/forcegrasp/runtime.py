@@ -73,6 +73,7 @@ def make_env(config: Config, object_name: str | None = None, **overrides):
         torque_noise_std=e.torque_noise_std,
         max_steps=e.max_steps,
         torque_history=e.torque_history,
+        torque_filter=e.torque_filter,
         proprioception=e.proprioception,
         mass_scale_range=e.mass_scale_range or None,
         torque_noise_range=e.torque_noise_range or None,
@@ -100,10 +101,12 @@ def policy_metadata(config: Config, hidden, training_steps: int = 0, score: floa
 
 def training_conditions(config: Config) -> dict:
     """The physics and sensing a policy was trained under (its file records them, so that an env
-    rebuilt from the file reproduces them): fixed values, and the per-episode ranges when set."""
+    rebuilt from the file reproduces them): fixed values, the per-episode ranges when set, and a
+    torque filter (part of the policy's sensing: every test of the policy keeps it)."""
     e = config.env
     return {"mass_scale": e.mass_scale, "torque_noise_std": e.torque_noise_std, "jitter": e.jitter,
-            "mass_scale_range": list(e.mass_scale_range), "torque_noise_range": list(e.torque_noise_range)}
+            "mass_scale_range": list(e.mass_scale_range), "torque_noise_range": list(e.torque_noise_range),
+            **({"torque_filter": e.torque_filter} if e.torque_filter < 1 else {})}
 
 
 def curriculum_of(config: Config) -> dict:
