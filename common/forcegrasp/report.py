@@ -1,16 +1,23 @@
 """The paper's experiments, run on the shipped policies of ``assets/policies/`` (``forcegrasp report``).
 
-A shipped policy is a policy file plus a JSON sidecar (`ship`): object, force feedback, seed,
-environment steps, wall-clock, recipe, and its score on 100 held-out placements. The experiments
-(`PROTOCOLS`), each over the ``"test"`` placement stream that never picked a checkpoint:
+A shipped policy is a policy file plus a JSON sidecar (`ship`): object, observation arm (force
+feedback and proprioception, `ARMS`), seed, environment steps, wall-clock, recipe, and its score on
+100 held-out placements. The experiments (`PROTOCOLS`), each over the ``"test"`` placement stream
+that never picked a checkpoint:
 
 - ``held_out``: success on N placements in the ±2 cm square; the same episodes give the
-  adaptation map (Fig. 6) and the with/without force feedback bars (Fig. 4);
+  adaptation map (Fig. 6) and the bars per observation arm (Fig. 4);
 - ``mass``: success at 1x and 0.5x the object's mass with the 0.03 m movement tolerance (Fig. 7);
 - ``noise``: success with Gaussian joint-torque noise of 0 to 1 N·m (Fig. 8);
 - ``trajectory``: palm and object x over time for the paper's three placements of Fig. 3.
 
-Work is cut into (policy, experiment, setting, placement chunk) jobs and spread over processes.
+The scripted straight approach (`forcegrasp.scripted`) runs ``held_out`` and ``mass`` on the same
+placements per object, told the true offset (what a well-aimed straight grasp achieves) and blind
+(the best an arm without object information can do): the reference rows of Figs. 4 and 7. It
+ignores observations, so torque noise cannot change it and ``noise`` does not run it.
+
+Work is cut into (policy or scripted mode, experiment, setting, placement chunk) jobs and spread
+over processes.
 """
 
 from __future__ import annotations
@@ -23,9 +30,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from forcegrasp import ASSETS_DIR
+from forcegrasp.task import PROPRIOCEPTION
 
 POLICIES_DIR = ASSETS_DIR / "policies"
 # Test workers start as fresh interpreters: forked from a process whose torch / OpenMP threads have
@@ -43,6 +49,15 @@ LIGHT_TOLERANCE = 0.03
 NOISE_LEVELS = tuple(round(0.1 * i, 1) for i in range(11))
 FIG3_OFFSETS = ((-0.017, 0.01), (-0.007, 0.01), (0.015, 0.01))  # the paper's scenes a, b, c
 TEST_SEED = 0
+#: The observation arms, (force feedback, proprioception), in the order the report sorts and draws them.
+ARMS = {
+    (True, "measured"): "torques + measured (Table I)",
+    (False, "measured"): "measured only (the paper's ablation)",
+    (True, "commanded"): "torques + commanded",
+    (False, "commanded"): "commanded only (no force information)",
+}
+TABLE_I = (True, "measured")  # the paper's arm: the lighter-object and noise experiments report it
+SCRIPTED_MODES = {"told": True, "blind": False}  # told the true offset, or believing it is zero
 
 #: The paper's numbers, for the table (None: not reported).
 PAPER = {
@@ -71,16 +86,50 @@ class Shipped:
     def force_feedback(self) -> bool:
         return bool(self.meta["force_feedback"])
 
+    @property
+    def proprioception(self) -> str:
+        return self.meta["proprioception"]
+
+    @property
+    def arm(self) -> tuple[bool, str]:
+        return self.force_feedback, self.proprioception
+
 
 def shipped_policies(folder: Path = POLICIES_DIR) -> list[Shipped]:
-    """Every ``*.safetensors`` with its ``.json`` sidecar, sorted by object, arm, seed."""
+    """Every ``*.safetensors`` with its ``.json`` sidecar, sorted by object, arm (`ARMS`), seed.
+    A sidecar must name the proprioception (`ship` records it): measured and commanded policies
+    observe the same sizes, so nothing else tells their arms apart without loading the file."""
     out = []
     for path in sorted(Path(folder).glob("*.safetensors")):
         sidecar = path.with_suffix(".json")
         if not sidecar.is_file():
             raise FileNotFoundError(f"{path}: no metadata file {sidecar.name}")
-        out.append(Shipped(path, json.loads(sidecar.read_text())))
-    return sorted(out, key=lambda s: (s.obj, not s.force_feedback, s.meta.get("seed", 0)))
+        s = Shipped(path, json.loads(sidecar.read_text()))
+        if s.meta.get("proprioception") not in PROPRIOCEPTION:
+            raise ValueError(f"{sidecar}: \"proprioception\" must be one of {', '.join(PROPRIOCEPTION)} (what "
+                             f"forcegrasp.task.proprioception_of reads from the policy file), got "
+                             f"{s.meta.get('proprioception')!r}; re-ship the policy or add the key")
+        out.append(s)
+    arms = list(ARMS)
+    return sorted(out, key=lambda s: (s.obj, arms.index(s.arm), s.meta.get("seed", 0)))
+
+
+def arm_of(row: dict) -> tuple[bool, str]:
+    """The observation arm of a `summarise` row."""
+    return bool(row["force_feedback"]), row["proprioception"]
+
+
+def arm_rows(summary: dict, obj: str, arm: tuple[bool, str]) -> list[dict]:
+    """The `summarise` rows (one per seed) of one object and arm."""
+    return [r for r in summary.values() if r["object"] == obj and arm_of(r) == arm]
+
+
+def pooled(rows: list[dict], kind: str, value: str = "") -> tuple[int, int] | None:
+    """Successes and episodes of one experiment setting summed over `rows` (seeds); None when none ran it."""
+    cells = [r[kind][value] for r in rows if value in r.get(kind, {})]
+    if not cells:
+        return None
+    return sum(c["successes"] for c in cells), sum(c["episodes"] for c in cells)
 
 
 def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -94,29 +143,27 @@ def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
 
 
 # ---------------------------------------------------------------------------------- jobs
-def _env(meta, **kwargs):
-    from forcegrasp.env import FunctionalGraspEnv
-
-    return FunctionalGraspEnv.for_policy(meta, **kwargs)
+def conditions(kind: str, value) -> dict:
+    """The fixed test conditions of one experiment setting (FunctionalGraspEnv keywords): the paper's
+    5x mass unless the experiment varies it, torque noise only where it does."""
+    if kind == "mass":
+        return {"mass_scale": value, "object_tolerance": LIGHT_TOLERANCE}
+    if kind == "noise":
+        return {"mass_scale": TRAINED_MASS, "torque_noise_std": value}
+    return {"mass_scale": TRAINED_MASS}
 
 
 def _job(args) -> tuple[tuple, list[dict]]:
     """Worker: one (policy, experiment, setting) on some placements; per-episode results."""
     key, path, kind, value, indices, count = args
-    from forcegrasp.evaluation import Placement, placements, run_episode
+    from forcegrasp.env import FunctionalGraspEnv
+    from forcegrasp.evaluation import placements, run_episode
     from forcegrasp.policy import Policy
 
     policy = Policy.load(path)
-    meta = policy.metadata
-    # Fixed test conditions whatever a policy trained under: the paper's 5x mass unless the
-    # experiment varies it, no randomisation (a policy file may record training ranges).
-    fixed = {"mass_scale": TRAINED_MASS, "mass_scale_range": None, "torque_noise_range": None}
-    if kind == "mass":
-        env = _env(meta, **{**fixed, "mass_scale": value, "object_tolerance": LIGHT_TOLERANCE})
-    elif kind == "noise":
-        env = _env(meta, **fixed, torque_noise_std=value)
-    else:
-        env = _env(meta, **fixed)
+    # No randomisation whatever a policy trained under (a policy file may record training ranges).
+    env = FunctionalGraspEnv.for_policy(policy.metadata, mass_scale_range=None, torque_noise_range=None,
+                                        **conditions(kind, value))
     if kind == "trajectory":
         return key, [_trajectory(env, policy, FIG3_OFFSETS[i], seed=1000 + i) for i in indices]
     places = placements(TEST_SEED, count, env.jitter, "test", clear=env.is_clear)
@@ -127,6 +174,31 @@ def _job(args) -> tuple[tuple, list[dict]]:
         r = run_episode(env, policy, places[i])
         out.append({"index": i, "offset": list(r.offset), "success": r.success, "failure": r.failure,
                     "length": r.length})
+    return key, out
+
+
+def scripted_env(obj: str, kind: str, value):
+    """The env the scripted rows run in: the object's defaults (a policy's trained env: jitter,
+    action steps) at the fixed conditions of one setting, as `_job` builds them for a policy."""
+    from forcegrasp.env import FunctionalGraspEnv
+
+    return FunctionalGraspEnv(obj, **conditions(kind, value))
+
+
+def _scripted_job(args) -> tuple[tuple, list[dict]]:
+    """Worker: the scripted approach, told or blind, on some of the policies' placements."""
+    key, indices, count = args
+    obj, mode, kind, value = key
+    from forcegrasp.evaluation import placements
+    from forcegrasp.scripted import run_episode
+
+    env = scripted_env(obj, kind, value)
+    places = placements(TEST_SEED, count, env.jitter, "test", clear=env.is_clear)
+    out = []
+    for i in indices:
+        r = run_episode(env, places[i].offset, told=SCRIPTED_MODES[mode], seed=places[i].seed)
+        out.append({"index": i, "offset": list(places[i].offset), "success": bool(r["success"]),
+                    "failure": r["failure"]})
     return key, out
 
 
@@ -142,6 +214,11 @@ def _trajectory(env, policy, offset, seed: int) -> dict:
                     "failure": info["failure"]}
 
 
+def _chunked(key: tuple, head: tuple, count: int, chunks: int) -> list[tuple]:
+    """One setting's `count` placements cut into up to `chunks` jobs: ``(key, *head, indices, count)``."""
+    return [(key, *head, list(range(c, count, chunks)), count) for c in range(min(chunks, count))]
+
+
 def plan(policies: list[Shipped], protocol: dict, chunks: int) -> list[tuple]:
     jobs = []
     for s in policies:
@@ -149,30 +226,56 @@ def plan(policies: list[Shipped], protocol: dict, chunks: int) -> list[tuple]:
         settings += [("mass", m, protocol["mass"]) for m in MASSES]
         settings += [("noise", v, protocol["noise"]) for v in NOISE_LEVELS]
         for kind, value, count in settings:
-            for c in range(min(chunks, count)):
-                jobs.append(((s.name, kind, value), str(s.path), kind, value, list(range(c, count, chunks)), count))
+            jobs += _chunked((s.name, kind, value), (str(s.path), kind, value), count, chunks)
     return jobs
 
 
-def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=print) -> dict:
-    """Every experiment of `protocol` on every policy; ``{policy: {kind: {value: [episodes]}}}``."""
-    jobs = plan(policies, protocol, chunks=max(1, workers))
-    episodes = sum(len(j[4]) for j in jobs)
+def plan_scripted(objects: list[str], protocol: dict, chunks: int) -> list[tuple]:
+    """The scripted rows' jobs: per object and mode, ``held_out`` and ``mass`` (not ``noise``)."""
+    settings = [("held_out", None, protocol["held_out"])] + [("mass", m, protocol["mass"]) for m in MASSES]
+    return [job for obj in objects for mode in SCRIPTED_MODES for kind, value, count in settings
+            for job in _chunked((obj, mode, kind, value), (), count, chunks)]
+
+
+def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=print) -> tuple[dict, dict]:
+    """Every experiment of `protocol` on every policy, and the scripted rows of their objects:
+    ``{policy: {kind: {value: [episodes]}}}`` and ``{object: {mode: {kind: {value: [episodes]}}}}``."""
+    chunks = max(1, workers)
+    objects = list(dict.fromkeys(s.obj for s in policies))
     results: dict = {s.name: {} for s in policies}
+    scripted: dict = {}
+    jobs = [(_job, j, results) for j in plan(policies, protocol, chunks)]
+    jobs += [(_scripted_job, j, scripted) for j in plan_scripted(objects, protocol, chunks)]
+    episodes = sum(len(j[-2]) for _, j, _ in jobs)
     t0, done = time.perf_counter(), 0
     with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=FRESH_WORKERS) as pool:
-        futures = [pool.submit(_job, j) for j in jobs]
+        futures = {pool.submit(work, j): tree for work, j, tree in jobs}
         for fut in as_completed(futures):
-            (name, kind, value), eps = fut.result()
-            results[name].setdefault(kind, {}).setdefault("" if value is None else f"{value:g}", []).extend(eps)
+            (*where, value), eps = fut.result()
+            leaf = futures[fut]
+            for k in where:
+                leaf = leaf.setdefault(k, {})
+            leaf.setdefault("" if value is None else f"{value:g}", []).extend(eps)
             done += len(eps)
             elapsed = time.perf_counter() - t0
             log(f"  {done}/{episodes} episodes, {elapsed:.0f} s, about {elapsed / done * (episodes - done):.0f} s left")
-    for per_policy in results.values():
-        for per_kind in per_policy.values():
-            for eps in per_kind.values():
-                eps.sort(key=lambda e: e.get("index", 0))
-    return results
+    for tree in (results, scripted):
+        _sort_episodes(tree)
+    return results, scripted
+
+
+def _sort_episodes(tree: dict) -> None:
+    """Each list of episodes in placement order (jobs finish in any order)."""
+    for v in tree.values():
+        if isinstance(v, list):
+            v.sort(key=lambda e: e.get("index", 0))
+        else:
+            _sort_episodes(v)
+
+
+def _rate(eps: list[dict]) -> dict:
+    k, n = sum(e["success"] for e in eps), len(eps)
+    return {"successes": k, "episodes": n, "rate": k / n, "ci95": wilson(k, n)}
 
 
 def summarise(policies: list[Shipped], results: dict) -> dict:
@@ -180,12 +283,18 @@ def summarise(policies: list[Shipped], results: dict) -> dict:
     out = {}
     for s in policies:
         r = results[s.name]
-        row = {"object": s.obj, "force_feedback": s.force_feedback, "seed": s.meta.get("seed"),
-               "env_steps": s.meta.get("env_steps"), "wall_clock_min": s.meta.get("wall_clock_min")}
+        row = {"object": s.obj, "force_feedback": s.force_feedback, "proprioception": s.proprioception,
+               "seed": s.meta.get("seed"), "env_steps": s.meta.get("env_steps"),
+               "wall_clock_min": s.meta.get("wall_clock_min")}
         for kind in ("held_out", "mass", "noise"):
-            row[kind] = {}
-            for value, eps in r.get(kind, {}).items():
-                k, n = sum(e["success"] for e in eps), len(eps)
-                row[kind][value] = {"successes": k, "episodes": n, "rate": k / n, "ci95": wilson(k, n)}
+            row[kind] = {value: _rate(eps) for value, eps in r.get(kind, {}).items()}
         out[s.name] = row
     return out
+
+
+def summarise_scripted(scripted: dict) -> dict:
+    """The scripted rows' success rates: ``{object: {"told" | "blind": {kind: {value: cell}}}}``."""
+    return {obj: {mode: {kind: {value: _rate(eps) for value, eps in per_obj[mode][kind].items()}
+                         for kind in ("held_out", "mass") if kind in per_obj[mode]}
+                  for mode in SCRIPTED_MODES if mode in per_obj}
+            for obj, per_obj in scripted.items()}

@@ -3,9 +3,12 @@
 Needs nothing but ``assets/policies/`` (no run folder): every policy there is tested on the
 held-out ``"test"`` placements (success with 95 % intervals, the adaptation map), at 1x and 0.5x
 mass with the 0.03 m tolerance, under joint-torque noise from 0 to 1 N·m, and on the paper's
-three Fig. 3 placements (palm and object x against time); one successful grasp per object is
+three Fig. 3 placements (palm and object x against time), and the scripted approach told and
+blind on the same held-out and lighter placements per object; one successful grasp per object is
 rendered as a GIF. ``--quick`` runs reduced trial counts (CI); the default is the full protocol.
-Writes ``OUT/results.md``, ``OUT/results.json``, ``OUT/results/*.png`` and ``OUT/results/grasp-*.gif``.
+Writes ``OUT/results.md``, ``OUT/results.json``, ``OUT/results/*.png`` (`report_figures`) and
+``OUT/results/grasp-*.gif``. Records beside OUT's parent (the repository) join the page where
+present: the probes of what each arm sees, and the frozen 5x-only rows Figs. 7 and 8 compare with.
 """
 
 from __future__ import annotations
@@ -18,137 +21,16 @@ import time
 from pathlib import Path
 
 from forcegrasp import docs_dir
+from forcegrasp.cli.report_figures import (fig_adaptation, fig_force_feedback, fig_lighter, fig_noise,
+                                           fig_trajectories)
 from forcegrasp.markdown import replace_between
-from forcegrasp.report import (FIG3_OFFSETS, MASSES, NOISE_LEVELS, PAPER, POLICIES_DIR, PROTOCOLS, run_experiments,
-                               shipped_policies, summarise)
+from forcegrasp.report import (ARMS, PAPER, POLICIES_DIR, PROTOCOLS, SCRIPTED_MODES, TABLE_I, arm_rows, pooled,
+                               run_experiments, shipped_policies, summarise, summarise_scripted, wilson)
 
 OBJECT_ORDER = ("spray_bottle", "power_drill", "mug", "camera")
-
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def _save(fig, out: Path, dpi: int) -> Path:
-    """Lay out, write and close one figure."""
-    fig.tight_layout()
-    fig.savefig(out, dpi=dpi)
-    _plt().close(fig)
-    return out
-
-
-def _pooled(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> tuple[int, int] | None:
-    """Successes and episodes over every seed of one object and arm."""
-    rows = [r for r in summary.values() if r["object"] == obj and r["force_feedback"] == ff and value in r[kind]]
-    if not rows:
-        return None
-    return sum(r[kind][value]["successes"] for r in rows), sum(r[kind][value]["episodes"] for r in rows)
-
-
-def fig_force_feedback(summary: dict, objects: list[str], out: Path) -> Path:
-    from forcegrasp.report import wilson
-
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7, 3.6))
-    for j, (ff, colour) in enumerate(((True, "tab:blue"), (False, "tab:orange"))):
-        for i, obj in enumerate(objects):
-            pooled = _pooled(summary, obj, ff, "held_out")
-            if pooled is None:
-                ax.text(i + (j - 0.5) * 0.36, 3, "not\ntrained", ha="center", fontsize=7, color=colour)
-                continue
-            k, n = pooled
-            lo, hi = wilson(k, n)
-            ax.bar(i + (j - 0.5) * 0.36, 100 * k / n, 0.34, color=colour, label=None if i else
-                   ("with force feedback" if ff else "without force feedback"))
-            ax.errorbar(i + (j - 0.5) * 0.36, 100 * k / n, yerr=[[max(0.0, 100 * (k / n - lo))], [max(0.0, 100 * (hi - k / n))]],
-                        color="k", capsize=3, lw=1)
-            for r in summary.values():  # each seed as a dot
-                if r["object"] == obj and r["force_feedback"] == ff:
-                    ax.plot(i + (j - 0.5) * 0.36, 100 * r["held_out"][""]["rate"], "k.", ms=4)
-    ax.axhline(90, color="grey", ls=":", lw=1)
-    ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="held-out success (%)", ylim=(0, 105),
-           title="Success with and without force feedback (95 % intervals; dots: seeds)")
-    ax.legend(fontsize=8, loc="lower right")
-    return _save(fig, out, dpi=110)
-
-
-def fig_adaptation(policies, results: dict, out: Path) -> Path:
-    plt = _plt()
-    cols = min(4, len(policies))
-    rows = -(-len(policies) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.9 * rows), squeeze=False)
-    for ax in axes.flat[len(policies):]:
-        ax.axis("off")
-    for ax, s in zip(axes.flat, policies):
-        eps = results[s.name]["held_out"][""]
-        for e in eps:
-            x, y = 100 * e["offset"][0], 100 * e["offset"][1]
-            ax.plot(x, y, "o" if e["success"] else "^", ms=4, mfc="none" if e["success"] else "tab:red",
-                    mec="tab:green" if e["success"] else "tab:red")
-        rate = sum(e["success"] for e in eps) / len(eps)
-        ax.set(xlim=(-2.2, 2.2), ylim=(-2.2, 2.2), aspect="equal", xlabel="dx (cm)",
-               title=f"{s.obj}\n{'with' if s.force_feedback else 'without'} FF, seed {s.meta.get('seed')}: {rate:.0%}")
-        ax.title.set_fontsize(8)
-    for row in axes:
-        row[0].set_ylabel("dy (cm)")
-    return _save(fig, out, dpi=100)
-
-
-def fig_lighter(summary: dict, objects: list[str], out: Path) -> Path:
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 3.4))
-    for j, m in enumerate(MASSES):
-        rates = [(_pooled(summary, o, True, "mass", f"{m:g}") or (0, 0)) for o in objects]
-        ax.bar([i + (j - 0.5) * 0.36 for i in range(len(objects))], [100 * k / n if n else 0 for k, n in rates], 0.34,
-               label=f"{m:g}x mass")
-    ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="success (%)", ylim=(0, 105),
-           title="Lighter objects, 0.03 m movement tolerance (with force feedback)")
-    ax.legend(fontsize=8)
-    return _save(fig, out, dpi=110)
-
-
-def fig_noise(summary: dict, objects: list[str], out: Path) -> Path:
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 3.4))
-    for o in objects:
-        pts = [(v, _pooled(summary, o, True, "noise", f"{v:g}")) for v in NOISE_LEVELS]
-        pts = [(v, 100 * k / n) for v, p in pts if p for k, n in [p]]
-        if pts:
-            ax.plot(*zip(*pts), marker="o", label=o)
-    ax.set(xlabel="joint-torque noise std (N·m)", ylabel="success (%)", ylim=(-3, 103),
-           title="Robustness against joint-torque noise (with force feedback)")
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    return _save(fig, out, dpi=110)
-
-
-def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> Path:
-    plt = _plt()
-    fig, axes = plt.subplots(len(objects), len(FIG3_OFFSETS), figsize=(9, 2.3 * len(objects)), squeeze=False)
-    for row, obj in zip(axes, objects):
-        for col, ax in enumerate(row):
-            for s in policies:
-                if s.obj != obj or s.meta.get("seed") != min(p.meta.get("seed") for p in policies if p.obj == obj):
-                    continue
-                t = results[s.name]["trajectory"][""][col]
-                colour = "tab:blue" if s.force_feedback else "tab:orange"
-                tag = f"{'FF' if s.force_feedback else 'no FF'} ({'ok' if t['success'] else t['failure']})"
-                ax.plot([100 * v for v in t["palm_x"]], color=colour, label=f"palm, {tag}")
-                ax.plot([100 * v for v in t["object_x"]], color=colour, ls="--", label="object")
-            dx, dy = FIG3_OFFSETS[col]
-            ax.set_title(f"{obj}, scene {'abc'[col]}: offset ({dx:+.3f}, {dy:+.3f}) m", fontsize=8)
-            ax.tick_params(labelsize=7)
-            if col == 0:
-                ax.set_ylabel("x (cm)", fontsize=8)
-            ax.legend(fontsize=6)
-    for ax in axes[-1]:
-        ax.set_xlabel("step", fontsize=8)
-    return _save(fig, out, dpi=100)
+#: Records the page reads relative to OUT's parent (docs/.. is the repository); absent ones are left out.
+PROBE_RECORD = Path("experiments/probes/ff_information.json")
+REFERENCE_5X = Path("experiments/reference/5x-only.json")
 
 
 def grasp_video(shipped, out: Path, tries: int = 10) -> Path | None:
@@ -171,29 +53,43 @@ def grasp_video(shipped, out: Path, tries: int = 10) -> Path | None:
     return None
 
 
-# ---------------------------------------------------------------------------------- the page
-def _cell(summary: dict, obj: str, ff: bool, kind: str, value: str = "") -> str:
-    from forcegrasp.report import wilson
+def read_reference(path: Path) -> dict | None:
+    """The frozen Fig. 7/8 rows of the policies trained at 5x mass only (`REFERENCE_5X`: per policy its
+    object, seed, ``mass`` and ``noise`` cells), or None where there is no such file."""
+    return json.loads(path.read_text()) if path.is_file() else None
 
-    pooled = _pooled(summary, obj, ff, kind, value)
-    if pooled is None:
+
+# ---------------------------------------------------------------------------------- the page
+def _cell(summary: dict, obj: str, arm: tuple[bool, str], kind: str, value: str = "") -> str:
+    counts = pooled(arm_rows(summary, obj, arm), kind, value)
+    if counts is None:
         return "not trained yet"
-    k, n = pooled
+    k, n = counts
     lo, hi = wilson(k, n)
     return f"**{k / n:.0%}** ({lo:.0%}–{hi:.0%}, n={n})"
 
 
-def results_table(summary: dict, objects: list[str]) -> list[str]:
-    """The summary table: success with and without force feedback, lighter objects and torque noise
-    (the page's first table, and the README's between its ``results-table`` markers)."""
-    lines = ["| object | with force feedback | without | paper (with / without) | 1x mass, 0.03 m | 0.5x mass, 0.03 m | "
-             "torque noise 0.5 N·m |", "|---|---|---|---|---|---|---|"]
+def _scripted_cell(scripted: dict, obj: str) -> str:
+    """The scripted approach's held-out success, told / blind."""
+    if obj not in scripted:
+        return "not run"
+    return " / ".join(f"{scripted[obj][mode]['held_out']['']['rate']:.0%}" for mode in SCRIPTED_MODES)
+
+
+def results_table(summary: dict, objects: list[str], scripted: dict) -> list[str]:
+    """The summary table: success with force feedback (the paper's arm) and without (its ablation),
+    the scripted approach's, lighter objects and torque noise (the page's first table, and the
+    README's between its ``results-table`` markers)."""
+    noff = (False, "measured")
+    lines = ["| object | with force feedback | without | scripted told / blind | paper (with / without) | "
+             "1x mass, 0.03 m | 0.5x mass, 0.03 m | torque noise 0.5 N·m |", "|---|---|---|---|---|---|---|---|"]
     for o in objects:
         paper_light = PAPER["mass_1"].get(o)
-        lines.append(f"| {o} | {_cell(summary, o, True, 'held_out')} | {_cell(summary, o, False, 'held_out')} | "
+        lines.append(f"| {o} | {_cell(summary, o, TABLE_I, 'held_out')} | {_cell(summary, o, noff, 'held_out')} | "
+                     f"{_scripted_cell(scripted, o)} | "
                      f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''} | "
-                     f"{_cell(summary, o, True, 'mass', '1')} | {_cell(summary, o, True, 'mass', '0.5')} | "
-                     f"{_cell(summary, o, True, 'noise', '0.5')} |")
+                     f"{_cell(summary, o, TABLE_I, 'mass', '1')} | {_cell(summary, o, TABLE_I, 'mass', '0.5')} | "
+                     f"{_cell(summary, o, TABLE_I, 'noise', '0.5')} |")
     return lines
 
 
@@ -217,7 +113,8 @@ def arms_section(probe: Path) -> list[str]:
     return lines + [""]
 
 
-def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path) -> Path:
+def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path,
+               scripted: dict | None = None) -> Path:
     objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
     rel = lambda p: p.relative_to(out).as_posix()  # noqa: E731
     lines = [
@@ -229,37 +126,44 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         f"{seconds / 60:.1f} min on this machine). Placements are the `test` stream (seed 0), never used to pick a "
         "checkpoint; actions deterministic; 95 % Wilson intervals, seeds pooled.",
         "",
-        *results_table(summary, objects),
+        *results_table(summary, objects, scripted or {}),
     ]
     lines += ["", f"The paper (1 M steps, 4 h on a GPU per policy): {PAPER['held_out_ff']} with force feedback, "
               f"{PAPER['held_out_noff']} without; lighter objects at 1x mass drill 73 %, mug 80 %, camera 99 % (spray "
-              f"lower), at 0.5x {PAPER['mass_0.5']}; torque noise: {PAPER['noise']}.", "",
+              f"lower), at 0.5x {PAPER['mass_0.5']}; torque noise: {PAPER['noise']}. The scripted straight "
+              "approach (`forcegrasp.scripted`) on the same placements: told the true offset, what a well-aimed "
+              "straight grasp achieves; blind (offset 0), the best an arm without object information can do.", "",
               "## The policies", "",
-              "| policy | object | force feedback | seed | env steps to the pick | wall-clock (min) | recipe |",
+              "| policy | object | observation arm | seed | env steps to the pick | wall-clock (min) | recipe |",
               "|---|---|---|---:|---:|---:|---|"]
     for s in policies:
         r = s.meta.get("recipe", {})
         extra = ", ".join(f"{k}={v}" for k, v in {**r.get("overrides", {}), **{k: v for k, v in r.get("actor", {}).items()
                                                                                 if k == "demo_episodes" and v}}.items())
-        lines.append(f"| `{s.path.name}` | {s.obj} | {'yes' if s.force_feedback else 'no'} | {s.meta.get('seed')} | "
+        lines.append(f"| `{s.path.name}` | {s.obj} | {ARMS[s.arm]} | {s.meta.get('seed')} | "
                      f"{s.meta.get('env_steps', 0):,} | {s.meta.get('wall_clock_min', 0):g} | "
                      f"{r.get('name', '?')}{' + ' + extra if extra else ''} |")
     captions = {
-        "fig4": "Success with and without force feedback (the paper's Fig. 4)",
+        "fig4": "Held-out success per observation arm, with the scripted approach told (dashed) and blind "
+                "(dotted) across each object's bars (the paper's Fig. 4)",
         "fig6": "Adaptation maps: held-out placements in the ±2 cm square, success (green circle) and failure (red triangle) (Fig. 6)",
-        "fig7": "Lighter objects: 1x and 0.5x mass with the 0.03 m movement tolerance (Fig. 7)",
-        "fig8": "Robustness against joint-torque noise, 0 to 1 N·m (Fig. 8)",
-        "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, with and without force feedback (Fig. 3)",
+        "fig7": "Lighter objects: 1x and 0.5x mass with the 0.03 m movement tolerance (Fig. 7); hatched, where "
+                f"shown: the policies trained at 5x mass only (`{REFERENCE_5X.as_posix()}`); diamonds: the scripted "
+                "approach told the offset",
+        "fig8": "Robustness against joint-torque noise, 0 to 1 N·m (Fig. 8); dashed, where shown: the policies "
+                "trained at 5x mass only",
+        "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, each arm's first "
+                "seed (Fig. 3)",
     }
-    lines += ["", *arms_section(out.parent / "experiments" / "probes" / "ff_information.json"), "## Figures", ""]
+    lines += ["", *arms_section(out.parent / PROBE_RECORD), "## Figures", ""]
     for key, caption in captions.items():
         if key in figures:
             lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
     videos = [p for k, p in figures.items() if k.startswith("grasp-")]
     if videos:
-        lines += ["**One successful held-out grasp per object** (its first force-feedback policy), pre-grasp to "
-                  "goal at a quarter speed, seen by the object's camera (`forcegrasp eval POLICY --video out.gif` "
-                  "renders one):", ""]
+        lines += ["**One successful held-out grasp per object** (its first policy with torques and measured "
+                  "proprioception, Table I), pre-grasp to goal at a quarter speed, seen by the object's camera "
+                  "(`forcegrasp eval POLICY --video out.gif` renders one):", ""]
         lines += [f"![{p.stem}]({rel(p)})" for p in videos] + [""]
     page = out / "results.md" if out.is_dir() else out
     page.write_text("\n".join(lines))
@@ -275,37 +179,41 @@ def main(argv=None) -> int:
     parser.add_argument("--no-videos", "--no-strips", dest="no_videos", action="store_true",
                         help="skip the rendered grasp GIFs")
     args = parser.parse_args(argv)
-    policies = shipped_policies(args.policies)
+    try:
+        policies = shipped_policies(args.policies)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if not policies:
         print(f"error: no shipped policies in {args.policies}", file=sys.stderr)
         return 2
     name = "quick" if args.quick else "full"
     print(f"{len(policies)} policies, {name} protocol, {args.workers} workers", flush=True)
     t0 = time.perf_counter()
-    results = run_experiments(policies, PROTOCOLS[name], args.workers, log=lambda s: print(s, flush=True))
-    summary = summarise(policies, results)
+    results, scripted_eps = run_experiments(policies, PROTOCOLS[name], args.workers, log=lambda s: print(s, flush=True))
+    summary, scripted = summarise(policies, results), summarise_scripted(scripted_eps)
+    reference = read_reference(args.out.parent / REFERENCE_5X)
     figs_dir = args.out / "results"
     figs_dir.mkdir(parents=True, exist_ok=True)
     objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
     figures = {
-        "fig4": fig_force_feedback(summary, objects, figs_dir / "force-feedback.png"),
+        "fig4": fig_force_feedback(summary, objects, figs_dir / "force-feedback.png", scripted),
         "fig6": fig_adaptation(policies, results, figs_dir / "adaptation.png"),
-        "fig7": fig_lighter(summary, objects, figs_dir / "lighter.png"),
-        "fig8": fig_noise(summary, objects, figs_dir / "torque-noise.png"),
+        "fig7": fig_lighter(summary, objects, figs_dir / "lighter.png", scripted, reference),
+        "fig8": fig_noise(summary, objects, figs_dir / "torque-noise.png", reference),
         "fig3": fig_trajectories(policies, results, objects, figs_dir / "trajectories.png"),
     }
     if not args.no_videos:
         for o in objects:
-            first = next(s for s in policies if s.obj == o and s.force_feedback) if any(
-                s.obj == o and s.force_feedback for s in policies) else None
+            first = next((s for s in policies if s.obj == o and s.arm == TABLE_I), None)
             if first is not None and (p := grasp_video(first, figs_dir / f"grasp-{o}.gif")) is not None:
                 figures[f"grasp-{o}"] = p
     seconds = time.perf_counter() - t0
     (args.out / "results.json").write_text(json.dumps(
         {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "policies": summary,
-         "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
-    page = write_page(policies, summary, figures, name, seconds, args.out)
-    table = results_table(summary, objects)
+         "scripted": scripted, "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
+    page = write_page(policies, summary, figures, name, seconds, args.out, scripted)
+    table = results_table(summary, objects, scripted)
     print("\n".join(table))
     if replace_between(args.out.parent / "README.md", "results-table", table):
         print(f"updated the results table of {args.out.parent / 'README.md'}")

@@ -4,8 +4,9 @@ The pick is the paper's: the evaluator's five best checkpoints, re-scored on 100
 best of them (`forcegrasp experiment` freezes it at each mark; ``--mark`` picks one, default the
 last). The shipped file is tested again on ``--episodes`` held-out placements (the ``"test"``
 stream, never used to pick) and the JSON sidecar records what `forcegrasp report` and a reader
-need: object, force feedback, seed, environment steps and wall-clock to the pick, the recipe, the
-score. Name: ``<object>-<ff|noff>-s<seed>.safetensors``.
+need: object, observation arm (force feedback and proprioception, read from the policy file),
+seed, environment steps and wall-clock to the pick, the recipe, the score. Name:
+``<object>-<ff|noff>[-cmd]-s<seed>.safetensors`` (``-cmd``: commanded proprioception).
 """
 
 from __future__ import annotations
@@ -18,9 +19,18 @@ import sys
 from pathlib import Path
 
 
+def picked_by(ev: dict) -> str:
+    """How the run's evaluator picked its best checkpoint, in words (from its configuration)."""
+    per = f" per condition ({', '.join(ev['conditions'])}), ranked on their mean" if ev.get("conditions") else ""
+    return (f"the evaluator's top {ev['top_k']} by {ev['eval_episodes']} placements{per}, re-scored on "
+            f"{ev['final_rank_episodes']} each; the best")
+
+
 def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
     from forcegrasp.cli.experiment import load_record, test_files
+    from forcegrasp.conditions import env_kwargs
     from forcegrasp.policy_file import load_policy_file
+    from forcegrasp.task import proprioception_of
 
     record = load_record(run_dir)
     if record is None:
@@ -33,23 +43,27 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     m = marks[-1]
     src = run_dir / "marks" / m["files"]["best"]
     meta = load_policy_file(src)[1]
-    arm = "ff" if meta.force_feedback else "noff"
+    proprioception = proprioception_of(meta)
+    arm = ("ff" if meta.force_feedback else "noff") + ("-cmd" if proprioception == "commanded" else "")
     dst = out_dir / f"{meta.object_name}-{arm}-s{record['seed']}.safetensors"
     log(f"testing {src} on {episodes} held-out placements")
-    (score,) = test_files([src], episodes, record.get("test_seed", 0), {}, workers, log)
+    # at the paper's training conditions, whatever ranges the policy trained on (forcegrasp.conditions)
+    (score,) = test_files([src], episodes, record.get("test_seed", 0), env_kwargs("5x"), workers, log)
     out_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dst.with_suffix(".tmp"))
     os.replace(dst.with_suffix(".tmp"), dst)
     sac = record["config"]["learner"]
     effective = record["effective"]  # what the run trained with
     sidecar = {
-        "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "seed": record["seed"],
+        "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "proprioception": proprioception,
+        "seed": record["seed"],
         "picked_step": int(meta.training_steps),
         "env_steps": int(m["steps"].get("latest", meta.training_steps)),
         "wall_clock_min": float(m["minute"]),
-        "picked_by": "the evaluator's top 5 by 10 placements, re-scored on 100; the best (paper's protocol)",
+        "picked_by": picked_by(record["config"]["evaluator"]),
         "held_out": {"episodes": score["episodes"], "success_rate": score["success_rate"],
-                     "mean_return": round(score["mean_return"], 2), "stream": "test", "seed": record.get("test_seed", 0)},
+                     "mean_return": round(score["mean_return"], 2), "stream": "test", "seed": record.get("test_seed", 0),
+                     "condition": "5x"},
         "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
