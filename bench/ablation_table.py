@@ -8,7 +8,7 @@ sessions, so minutes compare only within one session).
 Levers are read from each record: its `effective` SAC settings and demonstrations (what the run
 trained with), and the actor and env keys of `RUN_LEVERS` in its configuration (environments per
 actor, action step sizes, torque history), and named by how they differ from the default recipe on
-that object (`forcegrasp.recipes.recipe_settings`, `OBJECT_DEMOS`), so a record says itself what it
+that object (`forcegrasp.recipes.recipe_settings`, `demo_episodes`), so a record says itself what it
 measured; runs at the action step sizes of `FIRST_ACTION_STEPS` read "first action steps". A mark a
 run never reached is "–", never a guess; the table's last columns say how long each group's runs
 were and how fast they ran. Only version-2 records are read (`forcegrasp.cli.experiment.check_record`).

@@ -310,11 +310,11 @@ def test_actor_demonstrations_succeed_and_stay_out_of_the_online_figures(obj):
     assert batch.episode_successes is None or not batch.episode_successes.any()
 
 
-@pytest.mark.parametrize("obj, configured, expected", [("mug", None, 4), ("camera", None, 4), ("mug", 0, 0),
-                                                        ("camera", 0, 0), ("camera", 2, 2)])
+@pytest.mark.parametrize("obj, configured, expected", [("mug", None, 4), ("camera", None, 4), ("mug_mesh", None, 4),
+                                                        ("mug", 0, 0), ("camera", 0, 0), ("camera", 2, 2)])
 def test_demonstrations_default_to_the_recipes_number_for_the_object(obj, configured, expected):
     """`actor.demo_episodes = -1` (the default): every object's envs owe 4 demonstrations each
-    (`OBJECT_DEMOS`); a number the user sets, 0 included, is taken as it is."""
+    (`DEMOS_PER_ENV`), an imported mesh's too; a number the user sets, 0 included, is taken as it is."""
     from forcegrasp.acting import Actor
     from forcegrasp.config import load_config
 

@@ -7,7 +7,7 @@ the same process.
   ``j`` of actor ``i`` steps ``objects[(i * envs_per_actor + j) % len(objects)]``); every transition
   and ended episode carries its object's index into the batch's ``objects`` names (statistics only).
 - With ``actor.demo_episodes`` (default: the recipe's number for the object,
-  `forcegrasp.recipes.OBJECT_DEMOS`) each env first plays that many episodes of the scripted approach
+  `forcegrasp.recipes.DEMOS_PER_ENV`) each env first plays that many episodes of the scripted approach
   (`forcegrasp.scripted`) *told the true object offset*: demonstrations that put the success
   bonus into the replay buffer from the start (prior data, as in RLPD). The offset is simulator
   knowledge the deployed policy never sees; the demonstrations are counted apart from the

@@ -102,7 +102,7 @@ class ActorConfig:
     random_steps: int = _f(1000, "uniformly random actions for this many env steps per actor", min=0)
     demo_episodes: int = _f(-1, "episodes per env of the scripted approach told the true object offset, "
                                 "played first: demonstrations for the replay buffer (0: none; -1: the "
-                                "recipe's number for the object, forcegrasp.recipes.OBJECT_DEMOS)", min=-1)
+                                "recipe's number, forcegrasp.recipes.DEMOS_PER_ENV)", min=-1)
     demo_noise: float = _f(0.0, "std of Gaussian noise on the demonstrations' actions (action units)", min=0.0)
     publish_batch: int = _f(64, "transitions per published TransitionBatch", min=1)
     max_buffered_batches: int = _f(2000, "batches kept while the learner is away (oldest dropped)", min=1)
