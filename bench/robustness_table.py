@@ -32,6 +32,9 @@ def randomisation(record: dict) -> str:
         parts.append(f"noise {low:g}–{high:g} N·m")
     if env.get("torque_filter", 1.0) < 1:
         parts.append(f"torque filter {env['torque_filter']:g}")
+    noise = record.get("effective", {}).get("sac", {}).get("actor_torque_noise")
+    if noise:
+        parts.append(f"actor's loss noise 0–{noise:g} N·m")
     if env.get("curriculum_success"):
         parts.append(f"opened at {env['curriculum_success']:.0%} success")
     demos = record.get("effective", {}).get("demo_episodes")

@@ -65,3 +65,33 @@ def test_bad_filters_are_configuration_errors(bad):
         load_config(env={}, overrides=bad)
     with pytest.raises(ValueError, match="torque_filter"):
         FunctionalGraspEnv("mug", torque_filter=0.0)
+
+
+def test_the_actor_loss_sees_noisy_torques_and_the_critics_clean_ones():
+    """``learner.sac.actor_torque_noise``: torque noise as an augmentation of the actor's loss only
+    (sigma drawn per sample), so robustness to noise is learnt from clean episodes."""
+    import torch
+
+    from forcegrasp.sac import SAC, SACConfig
+    from forcegrasp.task import TORQUES
+
+    sac = SAC(77, 7, SACConfig(hidden=(8,), actor_torque_noise=1.0, seed=3))
+    obs = torch.zeros(4000, 77)
+    noisy = sac._noisy_torques(obs)
+    assert torch.equal(noisy[:, 24:], obs[:, 24:]) and torch.equal(obs, torch.zeros(4000, 77))  # a copy
+    per_sample = noisy[:, TORQUES].std(1)
+    assert 0.0 < per_sample.min() < 0.2 and 0.8 < per_sample.max() < 1.7  # sigma ~ U(0, 1), one per sample
+    assert abs(float(noisy[:, TORQUES].pow(2).mean()) - 1 / 3) < 0.03  # E[sigma^2] = 1/3
+    seen = {}
+    sac.actor_terms = lambda o, alpha, critic_obs: seen.update(actor=o, critic=critic_obs) or SAC.actor_terms(
+        sac, o, alpha, critic_obs)
+    batch = {"obs": np.zeros((16, 77), np.float32), "action": np.zeros((16, 7), np.float32),
+             "reward": np.zeros(16, np.float32), "next_obs": np.zeros((16, 77), np.float32),
+             "terminated": np.zeros(16, np.float32)}
+    sac.update(batch)
+    assert seen["actor"][:, TORQUES].abs().sum() > 0 and seen["critic"].abs().sum() == 0
+    assert SAC(77, 7, SACConfig(hidden=(8,)))._noisy_torques(obs) is obs  # off by default
+    with pytest.raises(ConfigError, match="actor_torque_noise needs env.force_feedback"):
+        load_config(env={}, overrides=["learner.sac.actor_torque_noise=0.5", "env.force_feedback=false"])
+    with pytest.raises(ConfigError, match="actor_torque_noise"):
+        load_config(env={}, overrides=["learner.sac.actor_torque_noise=-1"])

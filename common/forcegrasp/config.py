@@ -354,7 +354,9 @@ def _check_cross_fields(config: Config) -> None:
     from forcegrasp.conditions import check_conditions
     from forcegrasp.recipes import sac_config
 
-    sac_config(config)  # every [learner.sac] key and value, before any service starts
+    if sac_config(config).actor_torque_noise and not config.env.force_feedback:  # every key and value checked too
+        raise ConfigError("learner.sac.actor_torque_noise needs env.force_feedback = true: without it no torques "
+                          "are observed")
 
     try:
         check_conditions(config.evaluator.conditions, "evaluator.conditions")

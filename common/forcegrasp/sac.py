@@ -43,6 +43,7 @@ from forcegrasp.normalization import RunningMeanStd
 from forcegrasp.policy_file import PolicyMetadata, atomic_write
 from forcegrasp.replay import Batch
 from forcegrasp.sac_config import SACConfig  # noqa: F401  (part of this module's API)
+from forcegrasp.task import TORQUES
 
 CHECKPOINT_FORMAT = "forcegrasp-sac-checkpoint"
 CHECKPOINT_VERSION = 1
@@ -185,6 +186,18 @@ class SAC:
             alpha_loss = torch.zeros((), device=self.device)
         return ActorTerms(actor_loss, alpha_loss, log_prob)
 
+    def _noisy_torques(self, obs: torch.Tensor) -> torch.Tensor:
+        """``obs`` with ``actor_torque_noise`` on its torques (forcegrasp.task.TORQUES), a sigma drawn
+        per sample: what the actor's loss sees (the observations themselves stay as collected)."""
+        top = self.config.actor_torque_noise
+        if not top:
+            return obs
+        n, g = len(obs), self.policy_generator
+        sigma = torch.rand(n, 1, generator=g, device=obs.device) * top
+        noisy = obs.clone()
+        noisy[:, TORQUES] += sigma * torch.randn(n, TORQUES.stop - TORQUES.start, generator=g, device=obs.device)
+        return noisy
+
     def update(self, batch, metrics: bool = True) -> dict[str, float]:
         """One gradient step on critics, actor and temperature, then the target-critic update.
 
@@ -213,7 +226,7 @@ class SAC:
         def actor_grads() -> ActorTerms:
             if torch.get_num_threads() != threads:  # a worker thread keeps the count it started with
                 torch.set_num_threads(threads)
-            terms = self.actor_terms(obs, alpha, critic_obs)
+            terms = self.actor_terms(self._noisy_torques(obs), alpha, obs if critic_obs is None else critic_obs)
             (terms.actor_loss + terms.alpha_loss).backward()
             return terms
 

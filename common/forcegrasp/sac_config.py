@@ -32,6 +32,9 @@ class SACConfig:
     privileged_critic: bool = False  # asymmetric critic: also sees simulator state the actor never does
     obs_norm: bool = False  # running mean/std of observations, frozen into every policy file
     actor_ema: float = 0.0  # >0: actors and policy files get a Polyak average of the actor at this rate
+    # >0: the actor's loss sees each sample's torques (obs[0:24]) with Gaussian noise of sigma ~ U(0, this)
+    # N*m added, the critics see them clean: robustness to torque noise learnt without noisy episodes.
+    actor_torque_noise: float = 0.0
     tau: float = 0.005  # Polyak rate of the target critics
     target_update_interval: int = 1  # updates between target-critic updates
     # Entropy temperature.
@@ -59,7 +62,7 @@ class SACConfig:
 _BOUNDS = {"total_steps": (1, None), "learning_starts": (0, None), "updates_per_step": (0, None, False),
            "buffer_size": (1, None), "batch_size": (1, None), "actor_lr": (0, None, False),
            "critic_lr": (0, None, False), "alpha_lr": (0, None, False), "gamma": (0, 1, False),
-           "reward_scale": (0, None, False), "n_step": (1, None), "actor_ema": (0, 1),
+           "reward_scale": (0, None, False), "n_step": (1, None), "actor_ema": (0, 1), "actor_torque_noise": (0, None),
            "tau": (0, 1, False), "target_update_interval": (1, None), "init_alpha": (0, None, False),
            "num_threads": (1, None)}
 

@@ -58,6 +58,7 @@ PRIVILEGED_LAYOUT = (
 )
 PRIV_DIM = sum(n for _, n in PRIVILEGED_LAYOUT)
 DOMAIN = slice(PRIV_DIM - 2, PRIV_DIM)  # the "domain" entry, last
+TORQUES = slice(0, 24)  # joint_torques in an observation with force feedback (OBS_LAYOUT's first slot)
 
 #: Largest change per step of the base translation targets (m), rotation targets (rad) and h: the
 #: recipe's default (docs/recipe.md).
