@@ -2,16 +2,17 @@
 and force-feedback arm, with held-out success of the evaluator's pick at 10 / 20 / 40 / 60
 minutes, mean and range over seeds, and how many seeds reached each mark; then the axis that does
 not depend on the machine: the environment steps the first pick at or above 90 % was trained on,
-and each run's environment steps per second (the same two cores ran 110-430 steps/s in different
-sessions, so minutes compare only within one session).
+and each run's environment steps per second (the same two cores ran 110-430 steps/s at different
+times, so minutes compare only between runs of one time).
 
 Levers are read from each record: its `effective` SAC settings and demonstrations (what the run
 trained with), and the actor and env keys of `RUN_LEVERS` in its configuration (environments per
-actor, action step sizes, torque history), and named by how they differ from the default recipe on
+actor, action step sizes, torque history, proprioception, randomisation), and named by how they differ from the default recipe on
 that object (`forcegrasp.recipes.recipe_settings`, `demo_episodes`), so a record says itself what it
 measured; runs at the action step sizes of `FIRST_ACTION_STEPS` read "first action steps". A mark a
 run never reached is "–", never a guess; the table's last columns say how long each group's runs
-were and how fast they ran. Only version-2 records are read (`forcegrasp.cli.experiment.check_record`).
+were and how fast they ran. Only version-2 records are read (`forcegrasp.cli.experiment.check_record`);
+records scored on a mix of test conditions are `bench/robustness_table.py`'s.
 
     python bench/ablation_table.py experiments/*.json
     python bench/ablation_table.py --write docs/recipe.md experiments/*.json   # between its markers
@@ -39,7 +40,8 @@ MARKS = (10.0, 20.0, 40.0, 60.0)
 FIRST_ACTION_STEPS = (0.004, 0.02, 0.025)
 #: Levers outside [learner.sac], by section; named by their key alone.
 RUN_LEVERS = {"actor": ("demo_episodes", "num_actors", "envs_per_actor"),
-              "env": ("max_translation_step", "max_rotation_step", "max_h_step", "torque_history")}
+              "env": ("max_translation_step", "max_rotation_step", "max_h_step", "torque_history", "proprioception",
+                      "mass_scale", "mass_scale_range", "torque_noise_range", "torque_filter", "curriculum_success")}
 OFF = {f.name: f.default for f in dataclasses.fields(SACConfig) if f.default is not dataclasses.MISSING}
 OFF.update({key: getattr(getattr(Config(), section), key) for section, keys in RUN_LEVERS.items() for key in keys})
 OFF["demo_episodes"] = 0  # its default (-1) is per object: `default_for`
@@ -128,6 +130,8 @@ def table(paths: list[Path]) -> str:
     groups = defaultdict(list)
     for path in paths:
         record = read_record(path)
+        if record.get("conditions"):  # scored on a mix of test conditions: the robustness table's
+            continue
         key = (record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
         groups[key].append(record)
     lines = ["| object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)
