@@ -345,3 +345,26 @@ def test_experiment_marks_of_a_multi_object_run_are_tested_on_each_object(tmp_pa
     assert score["success_rate"] == min(e["success_rate"] for e in each.values())
     assert each["camera"]["mean_return"] != each["mug"]["mean_return"]  # really two objects' episodes
     assert "the min over objects camera, mug" in summary_lines(record)[0] and "camera " in summary_lines(record)[1]
+
+
+def test_eval_tests_a_generalist_zero_shot_on_an_object_it_never_saw(tmp_path, capsys):
+    """Leave-one-out: ``forcegrasp eval --unseen NAME`` runs the policy on an object outside its set;
+    the row says so and stays out of the worst object's figures."""
+    from forcegrasp.cli.policy_eval import main
+
+    meta = policy_metadata(config_of(objects=["camera", "spray_bottle"]), (8,))
+    path = tmp_path / "p.safetensors"
+    path.write_bytes(policy_to_bytes({k: np.zeros(s, np.float32) for k, s in actor_param_shapes(meta).items()}, meta))
+    out = tmp_path / "rows.json"
+    assert main([str(path), "--episodes", "1", "--unseen", "mug", "--json", str(out)]) == 0
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["object"], r["zero_shot"]) for r in rows] == [("camera", False), ("spray_bottle", False), ("mug", True)]
+    assert rows[2]["env"]["mass_scale"] == 5.0 and rows[2]["episodes"] == 1
+    text = capsys.readouterr().out
+    assert "| mug (unseen) | as given |" in text
+    worst = min(rows[:2], key=lambda r: r["mean_return"])["mean_return"]
+    assert f"| worst object | as given | 0% | {worst:.1f} |" in text
+    for bad, message in (("camera", "trained on it"), ("teapot", "unknown object")):
+        with pytest.raises(SystemExit):
+            main([str(path), "--episodes", "1", "--unseen", bad])
+        assert message in capsys.readouterr().err

@@ -12,7 +12,8 @@ the jitter itself is swept). The policy acts deterministically (tanh of the mean
 
 A policy of several objects (``env.objects``: its file records the set) is tested on each of them,
 one row per object and setting, the table ending with the worst object's figures; ``--object NAME``
-(repeatable) picks some.
+(repeatable) picks some. ``--unseen NAME`` (repeatable) also tests it, zero-shot, on an object it
+was not trained on (the leave-one-out test); such rows say so and stay out of the worst object's.
 
 ``--video OUT.gif`` (or ``.mp4``) renders instead of scoring: one episode on the first held-out
 placement, seen by the object's camera; ``--video DIR`` writes ``DIR/test-000.gif``... for the
@@ -64,15 +65,18 @@ def parse_setting(text: str, many: bool) -> tuple[str, list[float]]:
 
 
 def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, sweep: tuple[str, list[float]] | None,
-                log=print, log_dir: Path | None = None, objects: list[str] | None = None) -> list[dict]:
+                log=print, log_dir: Path | None = None, objects: list[str] | None = None,
+                unseen: list[str] | None = None) -> list[dict]:
     """One row per object and sweep value: success rate, mean return and failure counts over the
-    placements (``objects``: which of the policy's objects, default all)."""
+    placements (``objects``: which of the policy's objects, default all; ``unseen``: objects it was
+    not trained on, tested zero-shot)."""
     from forcegrasp.evaluation import placements, run_episode
 
     policy = _load_policy(policy_path)
     meta = policy.metadata
     key, values = sweep if sweep else (None, [None])
-    names = _objects_to_test(policy, objects)
+    names = _objects_to_test(policy, objects) + _unseen_objects(policy, unseen or [])
+    trained = set(policy_objects(meta))
     rows = []
     for obj, value in ((o, v) for o in names for v in values):
         kwargs = dict(fixed)
@@ -84,7 +88,7 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
             f"{key}-{value:g}" if key else "as-given")
         results = [run_episode(env, policy, p, _logger(folder, env, p, meta, policy_path))
                    for p in placements(seed, episodes, env.jitter, "test", clear=env.is_clear)]
-        row = {"object": obj, "force_feedback": meta.force_feedback,
+        row = {"object": obj, "zero_shot": obj not in trained, "force_feedback": meta.force_feedback,
                "setting": key, "value": value, "episodes": len(results),
                "success_rate": sum(r.success for r in results) / len(results),
                "mean_return": sum(r.ret for r in results) / len(results),
@@ -105,6 +109,19 @@ def _load_policy(policy_path: Path):
     if not policy_objects(policy.metadata):
         raise ValueError(f"{policy_path}: the policy's metadata names no object")
     return policy
+
+
+def _unseen_objects(policy, unseen: list[str]) -> list[str]:
+    """Objects to test zero-shot: known objects the policy was not trained on."""
+    from forcegrasp.objects import list_objects
+
+    trained = policy_objects(policy.metadata)
+    for name in unseen:
+        if name not in list_objects():
+            raise ValueError(f"--unseen {name}: unknown object (known: {', '.join(list_objects())})")
+        if name in trained:
+            raise ValueError(f"--unseen {name}: the policy was trained on it (use --object)")
+    return list(dict.fromkeys(unseen))
 
 
 def _objects_to_test(policy, wanted: list[str] | None) -> list[str]:
@@ -211,6 +228,8 @@ def main(argv=None) -> int:
     parser.add_argument("--sweep", metavar="KEY=V1,V2,...", help="test at each value of one env setting")
     parser.add_argument("--object", action="append", default=[], metavar="NAME",
                         help="test only this one of a multi-object policy's objects (repeatable; default all)")
+    parser.add_argument("--unseen", action="append", default=[], metavar="NAME",
+                        help="also test on this object the policy was not trained on, zero-shot (repeatable)")
     parser.add_argument("--json", type=Path, help="write the rows as JSON")
     parser.add_argument("--plot", type=Path, help="PNG of success rate against the swept setting")
     parser.add_argument("--log-dir", type=Path, help="write each episode as an MCAP log here (forcegrasp replay renders it)")
@@ -249,7 +268,7 @@ def main(argv=None) -> int:
     try:
         rows = evaluate_settings(policy_path, args.episodes, args.seed, fixed, sweep,
                                  log=lambda line: print(line, flush=True), log_dir=args.log_dir,
-                                 objects=args.object or None)
+                                 objects=args.object or None, unseen=args.unseen)
     except ValueError as exc:
         parser.exit(2, f"forcegrasp eval: {exc}\n")
     print()
@@ -257,12 +276,13 @@ def main(argv=None) -> int:
     print(f"| {'object | ' if many else ''}{rows[0]['setting'] or 'settings'} | success | mean return | failures |")
     print(f"|{'---|' if many else ''}---|---:|---:|---|")
     for r in rows:
-        print(f"| {r['object'] + ' | ' if many else ''}{r['value'] if r['setting'] else 'as given'} | "
+        name = r["object"] + (" (unseen)" if r["zero_shot"] else "")
+        print(f"| {name + ' | ' if many else ''}{r['value'] if r['setting'] else 'as given'} | "
               f"{r['success_rate']:.0%} | {r['mean_return']:.1f} | "
               f"{', '.join(f'{k}: {n}' for k, n in sorted(r['failures'].items(), key=str)) or '-'} |")
     if many:
         for value in dict.fromkeys(r["value"] for r in rows):
-            some = [r for r in rows if r["value"] == value]
+            some = [r for r in rows if r["value"] == value and not r["zero_shot"]]
             print(f"| worst object | {value if rows[0]['setting'] else 'as given'} | "
                   f"{aggregate([r['success_rate'] for r in some]):.0%} | "
                   f"{aggregate([r['mean_return'] for r in some]):.1f} | - |")
