@@ -27,7 +27,13 @@ from forcegrasp.markdown import replace_between
 from forcegrasp.report import (ARMS, PAPER, POLICIES_DIR, PROTOCOLS, SCRIPTED_MODES, TABLE_I, arm_rows, pooled,
                                run_experiments, shipped_policies, summarise, summarise_scripted, wilson)
 
-OBJECT_ORDER = ("spray_bottle", "power_drill", "mug", "camera")
+OBJECT_ORDER = ("spray_bottle", "power_drill", "mug", "camera")  # the paper's; imported objects follow by name
+
+
+def report_objects(policies) -> list[str]:
+    """The objects of the shipped policies: the paper's four in its order, then the others by name."""
+    have = {s.obj for s in policies}
+    return [o for o in OBJECT_ORDER if o in have] + sorted(have - set(OBJECT_ORDER))
 #: Records the page reads relative to OUT's parent (docs/.. is the repository); absent ones are left out.
 PROBE_RECORD = Path("experiments/probes/ff_information.json")
 REFERENCE_5X = Path("experiments/reference/5x-only.json")
@@ -115,7 +121,7 @@ def arms_section(probe: Path) -> list[str]:
 
 def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path,
                scripted: dict | None = None) -> Path:
-    objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
+    objects = report_objects(policies)
     rel = lambda p: p.relative_to(out).as_posix()  # noqa: E731
     lines = [
         "# Results: the paper's experiments on the shipped policies",
@@ -195,7 +201,7 @@ def main(argv=None) -> int:
     reference = read_reference(args.out.parent / REFERENCE_5X)
     figs_dir = args.out / "results"
     figs_dir.mkdir(parents=True, exist_ok=True)
-    objects = [o for o in OBJECT_ORDER if any(s.obj == o for s in policies)]
+    objects = report_objects(policies)
     figures = {
         "fig4": fig_force_feedback(summary, objects, figs_dir / "force-feedback.png", scripted),
         "fig6": fig_adaptation(policies, results, figs_dir / "adaptation.png"),
