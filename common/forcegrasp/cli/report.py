@@ -91,9 +91,9 @@ def results_table(summary: dict, objects: list[str], scripted: dict) -> list[str
              "1x mass, 0.03 m | 0.5x mass, 0.03 m | torque noise 0.5 N·m |", "|---|---|---|---|---|---|---|---|"]
     for o in objects:
         paper_light = PAPER["mass_1"].get(o)
+        paper = f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''}" if o in OBJECT_ORDER else "–"
         lines.append(f"| {o} | {_cell(summary, o, TABLE_I, 'held_out')} | {_cell(summary, o, noff, 'held_out')} | "
-                     f"{_scripted_cell(scripted, o)} | "
-                     f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''} | "
+                     f"{_scripted_cell(scripted, o)} | {paper} | "
                      f"{_cell(summary, o, TABLE_I, 'mass', '1')} | {_cell(summary, o, TABLE_I, 'mass', '0.5')} | "
                      f"{_cell(summary, o, TABLE_I, 'noise', '0.5')} |")
     return lines
