@@ -168,18 +168,19 @@ def online_at(scalars: dict, step: int) -> dict | None:
     """The actors' online figures as the learner logged them at ``step`` or just before: their last
     100 episodes, sampled actions, weights changing under them (issue 15) -- what the progress
     line showed when the mark's latest snapshot was taken, to set beside its held-out test."""
+    def last(tag: str) -> tuple[int, float] | None:  # the (step, value) logged at or before `step`
+        steps, values = scalars.get(tag, ([], []))
+        before = [(int(s), float(v)) for s, v in zip(steps, values) if s <= step]
+        return before[-1] if before else None
+
     out = {}
     for key, tag in (("success_rate", "actors/success_rate_100"), ("return_mean", "actors/return_mean_100")):
-        steps, values = scalars.get(tag, ([], []))
-        before = [i for i, s in enumerate(steps) if s <= step]
-        if not before:
+        if (point := last(tag)) is None:
             return None
-        out[key], out["step"] = float(values[before[-1]]), int(steps[before[-1]])
+        out["step"], out[key] = point
     for key in ("mass_scale_min", "noise_std_max"):  # how far randomisation had opened (a curriculum's level)
-        steps, values = scalars.get(f"actors/{key}", ([], []))
-        before = [v for s, v in zip(steps, values) if s <= step]
-        if before:
-            out[key] = float(before[-1])
+        if (point := last(f"actors/{key}")) is not None:
+            out[key] = point[1]
     return out
 
 
