@@ -198,7 +198,7 @@ def test_figs_7_and_8_draw_the_5x_only_reference():
         for cell in [*row["mass"].values(), *row["noise"].values()]:
             assert cell["rate"] == cell["successes"] / cell["episodes"]
     objects = sorted({r["object"] for r in reference["policies"].values()})
-    # shipped rows that are the reference's own (today's policies are the 5x-only ones)
+    # shipped rows that are the reference's own (the shipped force-feedback policies may be the 5x-only ones themselves)
     summary = {name: {**r, "force_feedback": True, "proprioception": "measured"} for name, r in reference["policies"].items()}
     scripted = {o: {"told": {"mass": {"1": _cell(10, 10), "0.5": _cell(9, 10)}}} for o in objects}
     for given in (reference, None):
