@@ -16,7 +16,7 @@ from forcegrasp.env import FunctionalGraspEnv
 from forcegrasp.evaluation import placements, run_episode
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import load_policy_file
-from forcegrasp.report import ARMS, POLICIES_DIR, TABLE_I, shipped_policies, wilson
+from forcegrasp.report import ARMS, POLICIES_DIR, TABLE_I, Shipped, shipped_policies, wilson
 from forcegrasp.task import proprioception_of
 
 REPO = Path(__file__).resolve().parent.parent
@@ -36,7 +36,7 @@ def test_policies_are_shipped():
     assert SHIPPED, f"no policies in {POLICIES_DIR}"
     for s in SHIPPED:
         cmd = "-cmd" if s.proprioception == "commanded" else ""
-        assert s.name == f"{s.obj}-{'ff' if s.force_feedback else 'noff'}{cmd}-s{s.meta['seed']}"
+        assert s.name == f"{'+'.join(s.objects)}-{'ff' if s.force_feedback else 'noff'}{cmd}-s{s.meta['seed']}"
 
 
 def test_each_shipped_policys_arm_comes_from_its_file_and_sidecar():
@@ -47,8 +47,8 @@ def test_each_shipped_policys_arm_comes_from_its_file_and_sidecar():
         assert (meta.force_feedback, proprioception_of(meta)) == s.arm, s.name
         assert s.arm in ARMS
     arms = list(ARMS)
-    assert [s.name for s in SHIPPED] == [s.name for s in sorted(SHIPPED, key=lambda s: (s.obj, arms.index(s.arm),
-                                                                                          s.meta["seed"]))]
+    assert [s.name for s in SHIPPED] == [s.name for s in sorted(SHIPPED, key=lambda s: (
+        s.multi, "+".join(s.objects), arms.index(s.arm), s.meta["seed"]))]
 
 
 def test_a_sidecar_without_proprioception_is_refused(tmp_path, capsys):
@@ -69,6 +69,9 @@ def test_a_sidecar_without_proprioception_is_refused(tmp_path, capsys):
 def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
     policy = Policy.load(shipped.path)
     meta = policy.metadata
+    if shipped.multi:  # its objects' scores are checked by the report's generalist rows
+        assert meta.extra["objects"] == shipped.objects and meta.object_name == ""
+        return
     env = FunctionalGraspEnv.for_policy(meta)  # its object, observation and action step sizes
     assert meta.object_name == shipped.obj and meta.force_feedback == shipped.force_feedback
     assert meta.obs_dim == env.observation_space.shape[0] == (77 if shipped.force_feedback else 53)
@@ -95,7 +98,8 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
 
     full = json.loads(RESULTS.read_text())
     assert full["protocol"] == "full"
-    assert set(full["policies"]) == {s.name for s in SHIPPED}, "docs/results.md is older than assets/policies/"
+    assert set(full["policies"]) == {s.name for s in SHIPPED if not s.multi}, "docs/results.md is older than assets/policies/"
+    assert set(full.get("generalists", {})) == {s.name for s in SHIPPED if s.multi}
     out = tmp_path / "docs"  # the page reads the 5x-only reference beside it, as docs/ does in the repository
     (tmp_path / REFERENCE_5X).parent.mkdir(parents=True)
     (tmp_path / REFERENCE_5X).write_bytes((REPO / REFERENCE_5X).read_bytes())
@@ -112,7 +116,7 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
                 claimed = full["policies"][name][kind][value]
                 assert agree((cell["successes"], cell["episodes"]), (claimed["successes"], claimed["episodes"])), \
                     (name, kind, value, cell, claimed)
-    assert set(quick["scripted"]) == {s.obj for s in SHIPPED}
+    assert set(quick["scripted"]) == {s.obj for s in SHIPPED if not s.multi}
     for obj, modes in quick["scripted"].items():
         assert set(modes) == {"told", "blind"}
         for mode, kinds in modes.items():
@@ -262,7 +266,6 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
 def test_serve_hands_out_a_shipped_policy_like_an_evaluator(tmp_path):
     """`forcegrasp serve FILE`: `forcegrasp best` gets the same bytes over HTTP and over Zenoh."""
     import signal
-    import time
 
     from forcegrasp.transport import free_tcp_port
 
@@ -300,3 +303,109 @@ def test_eval_and_replay_work_on_a_shipped_policy(tmp_path):
                           str(tmp_path / "strip.png"), "--frames", "3"], capture_output=True, text=True, timeout=120)
     assert got.returncode == 0, got.stderr
     assert (tmp_path / "strip.png").stat().st_size > 10000
+
+
+def _two_object_policy(folder: Path) -> Shipped:
+    """A shipped policy of two objects, mug and camera, made of the shipped mug policy's weights:
+    on the mug it grasps like that policy; the camera is a task it never learnt."""
+    import dataclasses
+
+    from forcegrasp.policy_file import save_policy_file
+
+    src = next(s for s in SHIPPED if s.obj == "mug" and s.arm == TABLE_I)
+    weights, meta = load_policy_file(src.path)
+    meta = dataclasses.replace(meta, object_name="", extra={**meta.extra, "objects": ["mug", "camera"]})
+    folder.mkdir(parents=True, exist_ok=True)
+    path = save_policy_file(folder / "mug+camera-ff-s0.safetensors", weights, meta)
+    path.with_suffix(".json").write_text(json.dumps({**src.meta, "object": "", "objects": ["mug", "camera"]}))
+    return Shipped(path, json.loads(path.with_suffix(".json").read_text()))
+
+
+def test_a_policy_of_several_objects_is_tested_on_each_and_zero_shot_on_the_others(tmp_path):
+    """The report runs a generalist on each of its objects (the env of that object: the mug weights
+    grasp the mug) and zero-shot on the paper's objects it never saw; the section and figure show it."""
+    from forcegrasp.cli.report import generalists_section
+    from forcegrasp.cli.report_figures import draw_generalists, generalist_cells
+    from forcegrasp.report import run_experiments, summarise, summarise_generalists
+
+    two = _two_object_policy(tmp_path / "policies")
+    assert two.multi and two.objects == ["mug", "camera"] and shipped_policies(tmp_path / "policies") == [two]
+    protocol = {"held_out": 6, "mass": 0, "noise": 0, "trajectory": 0}
+    results, scripted = run_experiments([two], protocol, workers=2, log=lambda s: None)
+    assert scripted == {} and summarise([two], results) == {}  # no one-object rows, no scripted rows
+    row = summarise_generalists([two], results)[two.name]
+    assert set(row["object"]) == {"mug", "camera"} and set(row["unseen"]) == {"spray_bottle", "power_drill"}
+    assert all(c["episodes"] == 6 for c in [*row["object"].values(), *row["unseen"].values()])
+    assert row["object"]["mug"]["successes"] >= 5  # run on the mug, where these weights grasp
+    assert row["object"]["camera"]["successes"] <= 2  # and on the camera, which they never learnt
+    failed = 6 - row["unseen"]["power_drill"]["successes"]
+    assert sum(row["unseen"]["power_drill"]["failures"].values()) == failed
+    lines = generalists_section({two.name: row}, {}, None, str)
+    assert lines[0] == "## One policy for several objects"
+    assert any(line.startswith(f"| `{two.name}` | 0 |") and "*" in line for line in lines)  # zero-shot in italics
+    assert generalist_cells({}, {two.name: row}, "mug")[1] == (row["object"]["mug"]["successes"], 6)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    assert draw_generalists(ax, {}, {two.name: row}) == ["mug", "camera", "spray_bottle", "power_drill"]
+    assert len(ax.patches) == 4  # a trained-on bar for mug and camera, a zero-shot bar for the other two
+    plt.close(fig)
+
+
+def test_ship_names_and_tests_a_policy_of_several_objects_on_each(tmp_path):
+    from forcegrasp.cli.experiment import effective_settings
+    from forcegrasp.cli.ship import main as ship_main
+    from forcegrasp.config import load_config
+
+    two = _two_object_policy(tmp_path / "made")
+    run = tmp_path / "run"
+    (run / "marks").mkdir(parents=True)
+    (run / "marks" / "best-005.0.safetensors").write_bytes(two.path.read_bytes())
+    overrides = ['env.objects=["mug","camera"]', "actor.demo_episodes=2"]
+    record = {"format": "forcegrasp-experiment", "version": 2, "label": "x", "seed": 3, "test_seed": 0,
+              "config": load_config(env={}, overrides=overrides).to_dict(),
+              "effective": effective_settings(load_config(env={}, overrides=overrides)),
+              "marks": [{"minute": 5.0, "files": {"best": "best-005.0.safetensors"},
+                         "steps": {"best": two.meta["picked_step"], "latest": 999999}, "test": {}}]}
+    (run / "experiment.json").write_text(json.dumps(record))
+    out = tmp_path / "policies"
+    assert ship_main([str(run), "--out", str(out), "--episodes", "4", "--workers", "2"]) == 0
+    meta = json.loads((out / "mug+camera-ff-s3.json").read_text())
+    assert meta["object"] == "" and meta["objects"] == ["mug", "camera"]
+    each = meta["held_out"]["objects"]
+    assert set(each) == {"mug", "camera"} and each["mug"]["success_rate"] >= 0.75 >= each["camera"]["success_rate"]
+    assert meta["held_out"]["success_rate"] == min(r["success_rate"] for r in each.values())  # the worst object's
+    (shipped,) = shipped_policies(out)
+    assert shipped.multi and shipped.objects == ["mug", "camera"]
+
+
+def test_a_report_carries_over_the_episodes_of_unchanged_policy_files_only(tmp_path):
+    """``--reuse``: a policy whose file is byte-for-byte what the previous report tested keeps its
+    episodes (only its trajectories run again); a changed file or another protocol runs afresh."""
+    import shutil
+
+    from forcegrasp.report import carried_over, file_digest, run_experiments
+
+    folder = tmp_path / "policies"
+    folder.mkdir()
+    for s in SHIPPED[:2]:
+        for suffix in (".safetensors", ".json"):
+            shutil.copyfile(s.path.with_suffix(suffix), folder / f"{s.name}{suffix}")
+    a, b = shipped_policies(folder)
+    kept = {"held_out": {"": [{"index": 0, "offset": [0.0, 0.0], "success": False, "failure": "made up", "length": 1}]}}
+    previous = {"protocol": "quick", "digests": {a.name: file_digest(a.path), b.name: "0" * 64},
+                "episodes": {a.name: kept, b.name: kept}, "scripted": {a.obj: {}}}
+    done, scripted_done = carried_over(previous, [a, b], "quick")
+    assert list(done) == [a.name] and scripted_done == [a.obj]  # b's file is not the one tested
+    assert carried_over(previous, [a, b], "full") == ({}, [])  # another protocol measures other counts
+    assert carried_over(None, [a, b], "quick") == ({}, [])
+    protocol = {"held_out": 2, "mass": 0, "noise": 0, "trajectory": 3}
+    results, scripted = run_experiments([a], protocol, workers=2, log=lambda s: None, done=done,
+                                        scripted_done=scripted_done)
+    assert results[a.name]["held_out"] == kept["held_out"] and scripted == {}  # nothing ran again...
+    assert len(results[a.name]["trajectory"][""]) == 3  # ...but the trajectories, which are not kept
+    assert done[a.name] == kept  # the caller's record is not changed

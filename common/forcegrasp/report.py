@@ -11,21 +11,29 @@ that never picked a checkpoint:
 - ``noise``: success with Gaussian joint-torque noise of 0 to 1 N·m (Fig. 8);
 - ``trajectory``: palm and object x over time for the paper's three placements of Fig. 3.
 
+A policy of several objects (``env.objects``; its sidecar lists ``objects``) runs none of these: it
+is tested on the held-out placements of each of its objects (``object``), and zero-shot on each of
+the paper's objects it never trained on (``unseen``): the report's generalist section.
+
 The scripted straight approach (`forcegrasp.scripted`) runs ``held_out`` and ``mass`` on the same
 placements per object, told the true offset (what a well-aimed straight grasp achieves) and blind
 (the best an arm without object information can do): the reference rows of Figs. 4 and 7. It
 ignores observations, so torque noise cannot change it and ``noise`` does not run it.
 
 Work is cut into (policy or scripted mode, experiment, setting, placement chunk) jobs and spread
-over processes.
+over processes. A report can carry over the episodes of a previous one (`carried_over`) for the
+policies whose file is byte-for-byte the one it tested, under the same protocol: adding a policy
+then costs that policy's episodes, not every policy's.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import multiprocessing
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +57,7 @@ LIGHT_TOLERANCE = 0.03
 NOISE_LEVELS = tuple(round(0.1 * i, 1) for i in range(11))
 FIG3_OFFSETS = ((-0.017, 0.01), (-0.007, 0.01), (0.015, 0.01))  # the paper's scenes a, b, c
 TEST_SEED = 0
+PAPER_OBJECTS = ("spray_bottle", "power_drill", "mug", "camera")  # in the paper's order
 #: The observation arms, (force feedback, proprioception), in the order the report sorts and draws them.
 ARMS = {
     (True, "measured"): "torques + measured (Table I)",
@@ -80,7 +89,16 @@ class Shipped:
 
     @property
     def obj(self) -> str:
+        """The object of a one-object policy; "" for a policy of several (`objects`)."""
         return self.meta["object"]
+
+    @property
+    def objects(self) -> list[str]:
+        return list(self.meta.get("objects") or [self.obj])
+
+    @property
+    def multi(self) -> bool:
+        return len(self.objects) > 1
 
     @property
     def force_feedback(self) -> bool:
@@ -111,7 +129,7 @@ def shipped_policies(folder: Path = POLICIES_DIR) -> list[Shipped]:
                              f"{s.meta.get('proprioception')!r}; re-ship the policy or add the key")
         out.append(s)
     arms = list(ARMS)
-    return sorted(out, key=lambda s: (s.obj, arms.index(s.arm), s.meta.get("seed", 0)))
+    return sorted(out, key=lambda s: (s.multi, "+".join(s.objects), arms.index(s.arm), s.meta.get("seed", 0)))
 
 
 def arm_of(row: dict) -> tuple[bool, str]:
@@ -150,6 +168,8 @@ def conditions(kind: str, value) -> dict:
         return {"mass_scale": value, "object_tolerance": LIGHT_TOLERANCE}
     if kind == "noise":
         return {"mass_scale": TRAINED_MASS, "torque_noise_std": value}
+    if kind in ("object", "unseen"):  # a generalist on one object, trained on or never seen
+        return {"object_name": value, "mass_scale": TRAINED_MASS}
     return {"mass_scale": TRAINED_MASS}
 
 
@@ -219,12 +239,21 @@ def _chunked(key: tuple, head: tuple, count: int, chunks: int) -> list[tuple]:
     return [(key, *head, list(range(c, count, chunks)), count) for c in range(min(chunks, count))]
 
 
+def unseen_objects(s: Shipped) -> list[str]:
+    """The paper's objects a policy of several objects never trained on (its zero-shot tests)."""
+    return [o for o in PAPER_OBJECTS if o not in s.objects] if s.multi else []
+
+
 def plan(policies: list[Shipped], protocol: dict, chunks: int) -> list[tuple]:
     jobs = []
     for s in policies:
-        settings = [("held_out", None, protocol["held_out"]), ("trajectory", None, len(FIG3_OFFSETS))]
-        settings += [("mass", m, protocol["mass"]) for m in MASSES]
-        settings += [("noise", v, protocol["noise"]) for v in NOISE_LEVELS]
+        if s.multi:
+            settings = [(kind, o, protocol["held_out"]) for kind, objs in (("object", s.objects),
+                                                                           ("unseen", unseen_objects(s))) for o in objs]
+        else:
+            settings = [("held_out", None, protocol["held_out"]), ("trajectory", None, len(FIG3_OFFSETS))]
+            settings += [("mass", m, protocol["mass"]) for m in MASSES]
+            settings += [("noise", v, protocol["noise"]) for v in NOISE_LEVELS]
         for kind, value, count in settings:
             jobs += _chunked((s.name, kind, value), (str(s.path), kind, value), count, chunks)
     return jobs
@@ -237,17 +266,37 @@ def plan_scripted(objects: list[str], protocol: dict, chunks: int) -> list[tuple
             for job in _chunked((obj, mode, kind, value), (), count, chunks)]
 
 
-def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=print) -> tuple[dict, dict]:
+def file_digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def carried_over(previous: dict | None, policies: list[Shipped], protocol_name: str) -> tuple[dict, list[str]]:
+    """What a previous report (its results.json) already measured under the same protocol: the
+    episodes of every policy whose file has the digest it recorded (trajectories are not kept: they
+    run again), and the objects whose scripted rows it has (they do not depend on any policy)."""
+    if not previous or previous.get("protocol") != protocol_name:
+        return {}, []
+    digests, episodes = previous.get("digests", {}), previous.get("episodes", {})
+    done = {s.name: episodes[s.name] for s in policies
+            if s.name in episodes and digests.get(s.name) == file_digest(s.path)}
+    return done, sorted(previous.get("scripted", {}))
+
+
+def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=print, done: dict | None = None,
+                    scripted_done=()) -> tuple[dict, dict]:
     """Every experiment of `protocol` on every policy, and the scripted rows of their objects:
-    ``{policy: {kind: {value: [episodes]}}}`` and ``{object: {mode: {kind: {value: [episodes]}}}}``."""
-    chunks = max(1, workers)
-    objects = list(dict.fromkeys(s.obj for s in policies))
-    results: dict = {s.name: {} for s in policies}
+    ``{policy: {kind: {value: [episodes]}}}`` and ``{object: {mode: {kind: {value: [episodes]}}}}``.
+    ``done`` (`carried_over`) gives policies' episodes already measured: only their trajectories
+    run; the scripted rows of ``scripted_done`` objects are left out (the caller has them)."""
+    chunks, done = max(1, workers), done or {}
+    objects = [o for o in dict.fromkeys(s.obj for s in policies if not s.multi) if o not in scripted_done]
+    results: dict = {s.name: json.loads(json.dumps(done.get(s.name, {}))) for s in policies}  # a deep copy
     scripted: dict = {}
-    jobs = [(_job, j, results) for j in plan(policies, protocol, chunks)]
+    jobs = [(_job, j, results) for j in plan(policies, protocol, chunks)
+            if j[0][0] not in done or j[0][1] == "trajectory"]
     jobs += [(_scripted_job, j, scripted) for j in plan_scripted(objects, protocol, chunks)]
     episodes = sum(len(j[-2]) for _, j, _ in jobs)
-    t0, done = time.perf_counter(), 0
+    t0, finished = time.perf_counter(), 0
     with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=FRESH_WORKERS) as pool:
         futures = {pool.submit(work, j): tree for work, j, tree in jobs}
         for fut in as_completed(futures):
@@ -255,10 +304,10 @@ def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=p
             leaf = futures[fut]
             for k in where:
                 leaf = leaf.setdefault(k, {})
-            leaf.setdefault("" if value is None else f"{value:g}", []).extend(eps)
-            done += len(eps)
+            leaf.setdefault("" if value is None else value if isinstance(value, str) else f"{value:g}", []).extend(eps)
+            finished += len(eps)
             elapsed = time.perf_counter() - t0
-            log(f"  {done}/{episodes} episodes, {elapsed:.0f} s, about {elapsed / done * (episodes - done):.0f} s left")
+            log(f"  {finished}/{episodes} episodes, {elapsed:.0f} s, about {elapsed / finished * (episodes - finished):.0f} s left")
     for tree in (results, scripted):
         _sort_episodes(tree)
     return results, scripted
@@ -279,15 +328,33 @@ def _rate(eps: list[dict]) -> dict:
 
 
 def summarise(policies: list[Shipped], results: dict) -> dict:
-    """Success rates with 95 % intervals per policy and experiment (what docs/results.md shows)."""
+    """Success rates with 95 % intervals per one-object policy and experiment (docs/results.md's table)."""
     out = {}
     for s in policies:
+        if s.multi:
+            continue
         r = results[s.name]
         row = {"object": s.obj, "force_feedback": s.force_feedback, "proprioception": s.proprioception,
                "seed": s.meta.get("seed"), "env_steps": s.meta.get("env_steps"),
                "wall_clock_min": s.meta.get("wall_clock_min")}
         for kind in ("held_out", "mass", "noise"):
             row[kind] = {value: _rate(eps) for value, eps in r.get(kind, {}).items()}
+        out[s.name] = row
+    return out
+
+
+def summarise_generalists(policies: list[Shipped], results: dict) -> dict:
+    """Per policy of several objects: its objects, arm, seed, and the success on each object it
+    trained on (``object``) and zero-shot on each it never saw (``unseen``, with its failure modes)."""
+    out = {}
+    for s in (s for s in policies if s.multi):
+        r = results[s.name]
+        row = {"objects": s.objects, "force_feedback": s.force_feedback, "proprioception": s.proprioception,
+               "seed": s.meta.get("seed"), "env_steps": s.meta.get("env_steps"),
+               "wall_clock_min": s.meta.get("wall_clock_min"),
+               "object": {o: _rate(eps) for o, eps in r.get("object", {}).items()},
+               "unseen": {o: {**_rate(eps), "failures": dict(Counter(e["failure"] for e in eps if not e["success"]))}
+                          for o, eps in r.get("unseen", {}).items()}}
         out[s.name] = row
     return out
 

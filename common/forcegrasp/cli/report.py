@@ -5,7 +5,11 @@ held-out ``"test"`` placements (success with 95 % intervals, the adaptation map)
 mass with the 0.03 m tolerance, under joint-torque noise from 0 to 1 N·m, and on the paper's
 three Fig. 3 placements (palm and object x against time), and the scripted approach told and
 blind on the same held-out and lighter placements per object; one successful grasp per object is
-rendered as a GIF. ``--quick`` runs reduced trial counts (CI); the default is the full protocol.
+rendered as a GIF. A policy of several objects is tested on each of its objects and zero-shot on
+the paper's others (the generalist section, beside the one-object policies of Table I's arm).
+``--reuse`` carries over OUT/results.json's episodes of every policy whose file is unchanged
+(same protocol), so adding a policy costs its own episodes only. ``--quick`` runs reduced trial
+counts (CI); the default is the full protocol.
 Writes ``OUT/results.md``, ``OUT/results.json``, ``OUT/results/*.png`` (`report_figures`) and
 ``OUT/results/grasp-*.gif``. Records beside OUT's parent (the repository) join the page where
 present: the probes of what each arm sees, and the frozen 5x-only rows Figs. 7 and 8 compare with.
@@ -21,19 +25,18 @@ import time
 from pathlib import Path
 
 from forcegrasp import docs_dir
-from forcegrasp.cli.report_figures import (fig_adaptation, fig_force_feedback, fig_lighter, fig_noise,
-                                           fig_trajectories)
+from forcegrasp.cli.report_figures import (fig_adaptation, fig_force_feedback, fig_generalists, fig_lighter,
+                                           fig_noise, fig_trajectories)
 from forcegrasp.markdown import replace_between
-from forcegrasp.report import (ARMS, PAPER, POLICIES_DIR, PROTOCOLS, SCRIPTED_MODES, TABLE_I, arm_rows, pooled,
-                               run_experiments, shipped_policies, summarise, summarise_scripted, wilson)
-
-OBJECT_ORDER = ("spray_bottle", "power_drill", "mug", "camera")  # the paper's; imported objects follow by name
+from forcegrasp.report import (ARMS, PAPER, PAPER_OBJECTS, POLICIES_DIR, PROTOCOLS, SCRIPTED_MODES, TABLE_I,
+                               arm_rows, carried_over, file_digest, pooled, run_experiments, shipped_policies,
+                               summarise, summarise_generalists, summarise_scripted, wilson)
 
 
 def report_objects(policies) -> list[str]:
     """The objects of the shipped policies: the paper's four in its order, then the others by name."""
-    have = {s.obj for s in policies}
-    return [o for o in OBJECT_ORDER if o in have] + sorted(have - set(OBJECT_ORDER))
+    have = {o for s in policies for o in s.objects}
+    return [o for o in PAPER_OBJECTS if o in have] + sorted(have - set(PAPER_OBJECTS))
 #: Records the page reads relative to OUT's parent (docs/.. is the repository); absent ones are left out.
 PROBE_RECORD = Path("experiments/probes/ff_information.json")
 REFERENCE_5X = Path("experiments/reference/5x-only.json")
@@ -91,7 +94,7 @@ def results_table(summary: dict, objects: list[str], scripted: dict) -> list[str
              "1x mass, 0.03 m | 0.5x mass, 0.03 m | torque noise 0.5 N·m |", "|---|---|---|---|---|---|---|---|"]
     for o in objects:
         paper_light = PAPER["mass_1"].get(o)
-        paper = f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''}" if o in OBJECT_ORDER else "–"
+        paper = f"~90 % / < 35 %{f'; 1x: {paper_light:.0%}' if paper_light else ''}" if o in PAPER_OBJECTS else "–"
         lines.append(f"| {o} | {_cell(summary, o, TABLE_I, 'held_out')} | {_cell(summary, o, noff, 'held_out')} | "
                      f"{_scripted_cell(scripted, o)} | {paper} | "
                      f"{_cell(summary, o, TABLE_I, 'mass', '1')} | {_cell(summary, o, TABLE_I, 'mass', '0.5')} | "
@@ -119,9 +122,49 @@ def arms_section(probe: Path) -> list[str]:
     return lines + [""]
 
 
+def _rate_cell(cell: dict | None, note: str = "") -> str:
+    if cell is None:
+        return "–"
+    lo, hi = wilson(cell["successes"], cell["episodes"])
+    return f"{note}{cell['rate']:.0%} [{lo:.0%}–{hi:.0%}]"
+
+
+def generalists_section(generalists: dict, summary: dict, figure: Path | None, rel) -> list[str]:
+    """The policies of several objects: held-out success on each object they trained on, zero-shot
+    on each they never saw (with what went wrong), beside the one-object policies (Table I's arm)."""
+    if not generalists:
+        return []
+    objects = [o for o in PAPER_OBJECTS if any(o in r["objects"] or o in r["unseen"] for r in generalists.values())]
+    objects += sorted({o for r in generalists.values() for o in r["objects"]} - set(objects))
+    lines = ["## One policy for several objects", "",
+             "Each policy trained on several objects (`env.objects`) is tested on the same held-out placements "
+             "as the one-object policies, on every object it trained on, and *zero-shot* (in italics) on each of "
+             "the paper's objects it never saw. Success with 95 % Wilson intervals; `worst` is the minimum over "
+             "the objects it trained on, which the evaluator ranks by.", "",
+             "| policy | seed | wall-clock (min) | " + " | ".join(objects) + " | worst |",
+             "|---|---:|---:|" + "---:|" * (len(objects) + 1)]
+    for name, r in generalists.items():
+        cells = [_rate_cell(r["object"].get(o)) if o in r["object"] else
+                 f"*{_rate_cell(r['unseen'].get(o))}*" if o in r["unseen"] else "–" for o in objects]
+        worst = min(r["object"].values(), key=lambda c: c["rate"]) if r["object"] else None
+        lines.append(f"| `{name}` | {r['seed']} | {r['wall_clock_min'] or 0:g} | " + " | ".join(cells)
+                     + f" | {_rate_cell(worst)} |")
+    specialists = [_cell(summary, o, TABLE_I, "held_out") for o in objects]
+    lines.append("| one policy per object (Table I's arm, seeds pooled) | | | " + " | ".join(specialists) + " | |")
+    failures = [f"{o}: " + ", ".join(f"{n} {k}" for k, n in sorted(r["unseen"][o]["failures"].items(), key=lambda kv: -kv[1]))
+                for r in generalists.values() for o in r["unseen"] if r["unseen"][o]["failures"]]
+    if failures:
+        lines += ["", "What the zero-shot failures were (`info[\"failure\"]`, per unseen object and policy): "
+                  + "; ".join(failures) + "."]
+    if figure is not None:
+        lines += ["", "**One policy per object, one for several, and zero-shot on an unseen object, per object.**",
+                  "", f"![generalists]({rel(figure)})"]
+    return lines + [""]
+
+
 def write_page(policies, summary: dict, figures: dict, protocol_name: str, seconds: float, out: Path,
-               scripted: dict | None = None) -> Path:
-    objects = report_objects(policies)
+               scripted: dict | None = None, generalists: dict | None = None, reused: int = 0) -> Path:
+    objects = report_objects([s for s in policies if not s.multi])
     rel = lambda p: p.relative_to(out).as_posix()  # noqa: E731
     lines = [
         "# Results: the paper's experiments on the shipped policies",
@@ -129,7 +172,9 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         f"Regenerated by `forcegrasp report{' --quick' if protocol_name == 'quick' else ''}` from `assets/policies/` "
         f"alone ({protocol_name} protocol: {PROTOCOLS[protocol_name]['held_out']} held-out placements per policy, "
         f"{PROTOCOLS[protocol_name]['mass']} per mass, {PROTOCOLS[protocol_name]['noise']} per noise level; "
-        f"{seconds / 60:.1f} min on this machine). Placements are the `test` stream (seed 0), never used to pick a "
+        f"{seconds / 60:.1f} min on this machine"
+        f"{f', carrying over the episodes of {reused} unchanged policies from the previous report' if reused else ''}"
+        "). Placements are the `test` stream (seed 0), never used to pick a "
         "checkpoint; actions deterministic; 95 % Wilson intervals, seeds pooled.",
         "",
         *results_table(summary, objects, scripted or {}),
@@ -146,7 +191,7 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         r = s.meta.get("recipe", {})
         extra = ", ".join(f"{k}={v}" for k, v in {**r.get("overrides", {}), **{k: v for k, v in r.get("actor", {}).items()
                                                                                 if k == "demo_episodes" and v}}.items())
-        lines.append(f"| `{s.path.name}` | {s.obj} | {ARMS[s.arm]} | {s.meta.get('seed')} | "
+        lines.append(f"| `{s.path.name}` | {', '.join(s.objects)} | {ARMS[s.arm]} | {s.meta.get('seed')} | "
                      f"{s.meta.get('env_steps', 0):,} | {s.meta.get('wall_clock_min', 0):g} | "
                      f"{r.get('name', '?')}{' + ' + extra if extra else ''} |")
     captions = {
@@ -161,7 +206,8 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         "fig3": "Palm (solid) and object (dashed) x against time for the paper's three placements, each arm's first "
                 "seed (Fig. 3)",
     }
-    lines += ["", *arms_section(out.parent / PROBE_RECORD), "## Figures", ""]
+    lines += ["", *arms_section(out.parent / PROBE_RECORD),
+              *generalists_section(generalists or {}, summary, figures.get("generalists"), rel), "## Figures", ""]
     for key, caption in captions.items():
         if key in figures:
             lines += [f"**{caption}.**", "", f"![{key}]({rel(figures[key])})", ""]
@@ -184,6 +230,8 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes (default: all cores)")
     parser.add_argument("--no-videos", "--no-strips", dest="no_videos", action="store_true",
                         help="skip the rendered grasp GIFs")
+    parser.add_argument("--reuse", action="store_true",
+                        help="carry over OUT/results.json's episodes of the policies whose file is unchanged")
     args = parser.parse_args(argv)
     try:
         policies = shipped_policies(args.policies)
@@ -196,29 +244,44 @@ def main(argv=None) -> int:
     name = "quick" if args.quick else "full"
     print(f"{len(policies)} policies, {name} protocol, {args.workers} workers", flush=True)
     t0 = time.perf_counter()
-    results, scripted_eps = run_experiments(policies, PROTOCOLS[name], args.workers, log=lambda s: print(s, flush=True))
-    summary, scripted = summarise(policies, results), summarise_scripted(scripted_eps)
+    previous_file = args.out / "results.json"
+    previous = json.loads(previous_file.read_text()) if args.reuse and previous_file.is_file() else None
+    done, scripted_done = carried_over(previous, policies, name)
+    if args.reuse:
+        print(f"carrying over the episodes of {len(done)} unchanged policies and the scripted rows of "
+              f"{len(scripted_done)} objects from {previous_file}", flush=True)
+    results, scripted_eps = run_experiments(policies, PROTOCOLS[name], args.workers, log=lambda s: print(s, flush=True),
+                                            done=done, scripted_done=scripted_done)
+    summary = summarise(policies, results)
+    scripted = {**{o: previous["scripted"][o] for o in scripted_done if o in {s.obj for s in policies}},
+                **summarise_scripted(scripted_eps)}
+    generalists = summarise_generalists(policies, results)
+    singles = [s for s in policies if not s.multi]
     reference = read_reference(args.out.parent / REFERENCE_5X)
     figs_dir = args.out / "results"
     figs_dir.mkdir(parents=True, exist_ok=True)
-    objects = report_objects(policies)
+    objects = report_objects(singles)
     figures = {
         "fig4": fig_force_feedback(summary, objects, figs_dir / "force-feedback.png", scripted),
-        "fig6": fig_adaptation(policies, results, figs_dir / "adaptation.png"),
+        "fig6": fig_adaptation(singles, results, figs_dir / "adaptation.png"),
         "fig7": fig_lighter(summary, objects, figs_dir / "lighter.png", scripted, reference),
         "fig8": fig_noise(summary, objects, figs_dir / "torque-noise.png", reference),
-        "fig3": fig_trajectories(policies, results, objects, figs_dir / "trajectories.png"),
+        "fig3": fig_trajectories(singles, results, objects, figs_dir / "trajectories.png"),
     }
+    if generalists:
+        figures["generalists"] = fig_generalists(summary, generalists, figs_dir / "generalists.png")
     if not args.no_videos:
         for o in objects:
-            first = next((s for s in policies if s.obj == o and s.arm == TABLE_I), None)
+            first = next((s for s in singles if s.obj == o and s.arm == TABLE_I), None)
             if first is not None and (p := grasp_video(first, figs_dir / f"grasp-{o}.gif")) is not None:
                 figures[f"grasp-{o}"] = p
     seconds = time.perf_counter() - t0
     (args.out / "results.json").write_text(json.dumps(
-        {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "policies": summary,
-         "scripted": scripted, "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
-    page = write_page(policies, summary, figures, name, seconds, args.out, scripted)
+        {"protocol": name, "counts": PROTOCOLS[name], "seconds": round(seconds, 1), "reused": sorted(done),
+         "digests": {s.name: file_digest(s.path) for s in policies}, "policies": summary,
+         "scripted": scripted, "generalists": generalists,
+         "episodes": {n: {k: v for k, v in r.items() if k != "trajectory"} for n, r in results.items()}}, indent=1))
+    page = write_page(policies, summary, figures, name, seconds, args.out, scripted, generalists, len(done))
     table = results_table(summary, objects, scripted)
     print("\n".join(table))
     if replace_between(args.out.parent / "README.md", "results-table", table):

@@ -5,7 +5,8 @@ the tests inspect) and a ``fig_*`` function that writes it as a PNG. Fig. 4 has 
 arm (`forcegrasp.report.ARMS`, always the same colours) and the scripted approach told and blind
 as lines; Figs. 7 and 8 show the paper's arm (`TABLE_I`) beside the frozen 5x-only reference
 (``experiments/reference/5x-only.json``, when the report is given it) and, in Fig. 7, the
-scripted approach told the offset.
+scripted approach told the offset. The generalist figure sets policies of several objects beside
+the one-object policies, per object, and zero-shot where a policy never saw the object.
 """
 
 from __future__ import annotations
@@ -196,3 +197,45 @@ def fig_trajectories(policies, results: dict, objects: list[str], out: Path) -> 
     for ax in axes[-1]:
         ax.set_xlabel("step", fontsize=8)
     return _save(fig, out, dpi=100)
+
+
+GENERALIST_SERIES = (("one policy per object (Table I's arm)", "tab:blue"),
+                     ("one policy for several objects", "tab:cyan"),
+                     ("zero-shot: a policy that never saw it", "tab:red"))
+
+
+def generalist_cells(summary: dict, generalists: dict, obj: str) -> list[tuple[int, int] | None]:
+    """Successes and episodes on ``obj`` of the three `GENERALIST_SERIES`, seeds pooled (None: none)."""
+    def pool(cells):
+        return (sum(c["successes"] for c in cells), sum(c["episodes"] for c in cells)) if cells else None
+
+    return [pooled(arm_rows(summary, obj, TABLE_I), "held_out"),
+            pool([r["object"][obj] for r in generalists.values() if obj in r["object"]]),
+            pool([r["unseen"][obj] for r in generalists.values() if obj in r["unseen"]])]
+
+
+def draw_generalists(ax, summary: dict, generalists: dict) -> list[str]:
+    """Per object, held-out success of the specialists, of the generalists trained on it and of those
+    that never saw it (zero-shot), with 95 % Wilson intervals; the objects drawn."""
+    objects = list(dict.fromkeys(o for r in generalists.values() for o in [*r["object"], *r["unseen"]]))
+    width, seen = 0.8 / len(GENERALIST_SERIES), set()
+    for i, obj in enumerate(objects):
+        for j, ((label, colour), cell) in enumerate(zip(GENERALIST_SERIES, generalist_cells(summary, generalists, obj))):
+            if cell is None:
+                continue
+            (k, n), x = cell, i + (j - 1) * width
+            lo, hi = wilson(k, n)
+            ax.bar(x, 100 * k / n, 0.94 * width, color=colour, label=_once(label, seen))
+            ax.errorbar(x, 100 * k / n, yerr=[[max(0.0, 100 * (k / n - lo))], [max(0.0, 100 * (hi - k / n))]],
+                        color="k", capsize=3, lw=1)
+    ax.axhline(90, color="0.75", lw=0.8, zorder=0)
+    ax.set(xticks=range(len(objects)), xticklabels=objects, ylabel="held-out success (%)", ylim=(0, 105),
+           title="One policy per object, one for several, and zero-shot (95 % intervals)")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=3)
+    return objects
+
+
+def fig_generalists(summary: dict, generalists: dict, out: Path) -> Path:
+    fig, ax = _plt().subplots(figsize=(8, 4.2))
+    draw_generalists(ax, summary, generalists)
+    return _save(fig, out, dpi=110)

@@ -6,7 +6,9 @@ last). The shipped file is tested again on ``--episodes`` held-out placements (t
 stream, never used to pick) and the JSON sidecar records what `forcegrasp report` and a reader
 need: object, observation arm (force feedback and proprioception, read from the policy file),
 seed, environment steps and wall-clock to the pick, the recipe, the score. Name:
-``<object>-<ff|noff>[-cmd]-s<seed>.safetensors`` (``-cmd``: commanded proprioception).
+``<object>-<ff|noff>[-cmd]-s<seed>.safetensors`` (``-cmd``: commanded proprioception). A policy of
+several objects is named for its set (``camera+mug-ff-s0``), tested on each object, and its sidecar
+records ``objects`` and the score on each (``held_out`` is the worst object's).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ def picked_by(ev: dict) -> str:
 def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, workers: int, log=print) -> Path:
     from forcegrasp.cli.experiment import load_record, test_files
     from forcegrasp.conditions import env_kwargs
+    from forcegrasp.multi_object import policy_objects
     from forcegrasp.policy_file import load_policy_file
     from forcegrasp.task import proprioception_of
 
@@ -45,17 +48,21 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     meta = load_policy_file(src)[1]
     proprioception = proprioception_of(meta)
     arm = ("ff" if meta.force_feedback else "noff") + ("-cmd" if proprioception == "commanded" else "")
-    dst = out_dir / f"{meta.object_name}-{arm}-s{record['seed']}.safetensors"
-    log(f"testing {src} on {episodes} held-out placements")
+    objects = policy_objects(meta)
+    dst = out_dir / f"{'+'.join(objects)}-{arm}-s{record['seed']}.safetensors"
+    log(f"testing {src} on {episodes} held-out placements" + (" of each object" if len(objects) > 1 else ""))
     # at the paper's training conditions, whatever ranges the policy trained on (forcegrasp.conditions)
-    (score,) = test_files([src], episodes, record.get("test_seed", 0), env_kwargs("5x"), workers, log)
+    each = {o: test_files([src], episodes, record.get("test_seed", 0), {**env_kwargs("5x"), "object_name": o},
+                          workers, log)[0] for o in objects}
+    score = min(each.values(), key=lambda r: r["success_rate"])
     out_dir.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(src, dst.with_suffix(".tmp"))
     os.replace(dst.with_suffix(".tmp"), dst)
     sac = record["config"]["learner"]
     effective = record["effective"]  # what the run trained with
     sidecar = {
-        "object": meta.object_name, "force_feedback": bool(meta.force_feedback), "proprioception": proprioception,
+        "object": meta.object_name, **({"objects": objects} if len(objects) > 1 else {}),
+        "force_feedback": bool(meta.force_feedback), "proprioception": proprioception,
         "seed": record["seed"],
         "picked_step": int(meta.training_steps),
         "env_steps": int(m["steps"].get("latest", meta.training_steps)),
@@ -63,7 +70,9 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
         "picked_by": picked_by(record["config"]["evaluator"]),
         "held_out": {"episodes": score["episodes"], "success_rate": score["success_rate"],
                      "mean_return": round(score["mean_return"], 2), "stream": "test", "seed": record.get("test_seed", 0),
-                     "condition": "5x"},
+                     "condition": "5x",
+                     **({"objects": {o: {"episodes": r["episodes"], "success_rate": r["success_rate"]}
+                                     for o, r in each.items()}} if len(objects) > 1 else {})},
         "recipe": {"name": sac.get("recipe"), "overrides": sac.get("sac", {}),
                    "actor": {**{k: record["config"]["actor"][k] for k in ("num_actors", "envs_per_actor")
                                 if k in record["config"]["actor"]},
