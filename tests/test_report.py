@@ -409,3 +409,20 @@ def test_a_report_carries_over_the_episodes_of_unchanged_policy_files_only(tmp_p
     assert results[a.name]["held_out"] == kept["held_out"] and scripted == {}  # nothing ran again...
     assert len(results[a.name]["trajectory"][""]) == 3  # ...but the trajectories, which are not kept
     assert done[a.name] == kept  # the caller's record is not changed
+
+
+def test_the_four_arms_section_states_each_arms_pooled_rate_and_words_only_the_arms_shipped():
+    from forcegrasp.cli.report import ablation_section
+
+    def row(obj, ff, proprioception, k, n):
+        return {"object": obj, "force_feedback": ff, "proprioception": proprioception,
+                "held_out": {"": {"successes": k, "episodes": n, "rate": k / n}}}
+
+    summary = {"a": row("mug", True, "measured", 100, 100), "b": row("mug", False, "commanded", 30, 50),
+               "c": row("mug", False, "commanded", 31, 50)}  # two seeds pool to 61 of 100
+    scripted = {"mug": {"told": {"held_out": {"": {"rate": 1.0}}}, "blind": {"held_out": {"": {"rate": 0.25}}}}}
+    text = "\n".join(ablation_section(summary, ["mug"], scripted))
+    lo, hi = wilson(61, 100)
+    assert f"| mug | 100% [{wilson(100, 100)[0]:.0%}–100%] | – | – | 61% [{lo:.0%}–{hi:.0%}] | 100% / 25% |" in text
+    assert "one open-loop trajectory" in text and f"the mug 61% [{lo:.0%}–{hi:.0%}]" in text
+    assert "torque sensors alone" not in text and "Measured only" not in text  # arms not shipped are not worded
