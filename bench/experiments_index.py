@@ -56,8 +56,8 @@ filed). Its keys:
     python bench/robustness_table.py experiments/*.json   # per-condition figures of runs tested under conditions
 
 The ablation table groups records by object, force-feedback arm and setting; a setting is named by
-how the record's `effective` settings and configuration differ from the default recipe on that
-object (the "setting" column below). `snapshot-spread/` holds the output of
+how the record's `effective` settings and configuration differ from "fast (fixed conditions)",
+the default recipe without its randomisation and observation normalisation, on that object (the "setting" column below). `snapshot-spread/` holds the output of
 `bench/snapshot_spread.py` for one run (not an experiment record: the tables do not read it), and
 `benchmarks/` the logs of the benchmark runs whose figures docs/benchmarks.md quotes (their names
 carry the date: the machine's speed varies between days), with `probes/ff_information.json` the probe

@@ -21,7 +21,8 @@ MARKER = "robustness-table"
 
 
 def randomisation(record: dict) -> str:
-    """The run's training-time randomisation and demonstrations, in words."""
+    """The run's training-time randomisation, and the levers beside it (observation normalisation,
+    a torque filter, demonstrations), in words."""
     env = record.get("config", {}).get("env", {})
     parts = []
     if env.get("mass_scale_range"):
@@ -32,6 +33,8 @@ def randomisation(record: dict) -> str:
         parts.append(f"noise {low:g}–{high:g} N·m")
     if env.get("torque_filter", 1.0) < 1:
         parts.append(f"torque filter {env['torque_filter']:g}")
+    if record.get("effective", {}).get("sac", {}).get("obs_norm"):
+        parts.append("observation normalisation")
     noise = record.get("effective", {}).get("sac", {}).get("actor_torque_noise")
     if noise:
         parts.append(f"actor's loss noise 0–{noise:g} N·m")

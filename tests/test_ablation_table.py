@@ -20,9 +20,15 @@ FIXTURES = ROOT / "tests" / "data" / "experiments"
 EXPERIMENTS = ROOT / "experiments"
 
 
+#: The table's baseline: the default recipe at the paper's fixed conditions, without observation
+#: normalisation (what joined the recipe with the randomisation).
+FIXED = ("env.mass_scale_range=[]", "env.torque_noise_range=[]", "evaluator.conditions=[]", "learner.sac.obs_norm=false")
+
+
 def record(seed, marks, *overrides, obj="camera"):
-    """A version-2 record of a run with these configuration overrides, as `forcegrasp experiment` writes it."""
-    config = load_config(env={}, overrides=[f"env.object={obj}", f"run.seed={seed}", *overrides])
+    """A version-2 record of a run at the table's baseline with these configuration overrides, as
+    `forcegrasp experiment` writes it."""
+    config = load_config(env={}, overrides=[f"env.object={obj}", f"run.seed={seed}", *FIXED, *overrides])
     rec = {"format": "forcegrasp-experiment", "version": 2, "seed": seed, "object": obj, "force_feedback": True,
            "config": config.to_dict(), "effective": effective_settings(config),
            "marks": [{"minute": m, "elapsed_s": 60 * m, "steps": {"latest": 12_000 * m, "best": 10_000 * m},
@@ -38,13 +44,17 @@ def cells_of(row):
     return [c.strip() for c in row.strip("|").split("|")]
 
 
-def test_lever_names_are_differences_from_the_default():
-    assert name(record(0, [])) == name(record(0, [], obj="mug")) == "fast (the default)"
+def test_lever_names_are_differences_from_the_baseline():
+    assert name(record(0, [])) == name(record(0, [], obj="mug")) == "fast (fixed conditions)"
+    # today's default, randomised and normalised, names what it adds to the baseline
+    assert name(record(0, [], "env.mass_scale_range=[0.5, 5]", "env.torque_noise_range=[0, 1]",
+                       "learner.sac.obs_norm=true")) == \
+        "fast, mass_scale_range = [0.5, 5.0], obs_norm = True, torque_noise_range = [0.0, 1.0]"
     assert name(record(0, [], "learner.sac.n_step=3")) == "fast, n_step = 3"
     assert name(record(0, [], "learner.recipe=paper")) == \
         "fast, − critic_layer_norm, − privileged_critic, − updates_per_step"
     assert name(record(0, [], "actor.demo_episodes=0")) == "fast, − demo_episodes"
-    assert name(record(0, [], "actor.demo_episodes=4")) == "fast (the default)"  # the object's number, named
+    assert name(record(0, [], "actor.demo_episodes=4")) == "fast (fixed conditions)"  # the object's number, named
     assert name(record(0, [], "learner.sac.critic_layer_norm=false", obj="mug")) == "fast, − critic_layer_norm"
     assert name(record(0, [], "learner.sac.critic_hidden=[512, 512]")) == "fast, critic_hidden = [512, 512]"
     more_envs = record(0, [], "learner.sac.updates_per_step=0.1", "actor.envs_per_actor=16",
@@ -77,7 +87,7 @@ def test_table_pools_seeds_and_leaves_unreached_marks_empty(tmp_path):
     table = ablation_table.table(paths).splitlines()
     assert cells_of(table[0])[:4] == ["object", "force feedback", "setting", "seeds"]  # no labels-era column
     cells = cells_of(table[2])
-    assert cells[:4] == ["camera", "yes", "fast (the default)", "0, 1"]
+    assert cells[:4] == ["camera", "yes", "fast (fixed conditions)", "0, 1"]
     assert cells[4] == "60 % [50–70] (n=2)"
     assert cells[5] == "95 % [90–100] (n=2)"
     assert cells[6] == "100 % (n=1)"
@@ -101,7 +111,7 @@ def test_table_from_a_fixture_folder_of_records():
     in its own row, and one scored on a mix of test conditions, which is the robustness table's."""
     table = ablation_table.table(sorted(FIXTURES.glob("*.json"))).splitlines()
     assert len(table) == 4
-    assert table[2] == ("| camera | yes | fast (the default) | 0 | 80 % (n=1) | 96 % (n=1) | – | – "
+    assert table[2] == ("| camera | yes | fast (fixed conditions) | 0 | 80 % (n=1) | 96 % (n=1) | – | – "
                         "| 50 k (1 of 1) | 20 min | 50 |")
     assert cells_of(table[3])[2:5] == ["fast, n_step = 3", "0", "90 % (n=1)"]
     assert ablation_table.main([str(p) for p in sorted(FIXTURES.glob("*.json"))]) == 0

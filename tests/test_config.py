@@ -30,7 +30,11 @@ def test_defaults_without_sources():
     config = load_config(env={})
     assert config == Config()
     assert config.evaluator.eval_every == 2000 and config.evaluator.top_k == 5
-    assert config.evaluator.final_rank_episodes == 100
+    # the robust recipe: trained on a range of masses and torque noise, ranked on the mix of the
+    # paper's test conditions, 20 placements each in the final ranking (100 in all)
+    assert config.env.mass_scale_range == [0.5, 5.0] and config.env.torque_noise_range == [0.0, 1.0]
+    assert config.evaluator.conditions == ["5x", "1x_3cm", "0.5x_3cm", "noise_0.5", "jitter_3cm"]
+    assert config.evaluator.final_rank_episodes * len(config.evaluator.conditions) == 100
     assert config.network.learner_listen == ["tcp/127.0.0.1:7447"]
 
 

@@ -37,9 +37,11 @@ HIDDEN = (32, 32)
 
 
 def tiny_config(tmp_path, run="ev", **extra):
+    """A short-episode run scored under its own env alone (the mix of test conditions has its own tests)."""
     overrides = [f"run.name={run}", f"run.output_dir={tmp_path / 'runs'}", "env.object=camera",
                  "env.max_steps=20", "evaluator.eval_every=1000", "evaluator.eval_episodes=2",
-                 "evaluator.final_rank_episodes=3", "evaluator.top_k=5", "evaluator.http_port=0"]
+                 "evaluator.final_rank_episodes=3", "evaluator.top_k=5", "evaluator.http_port=0",
+                 "evaluator.conditions=[]"]
     overrides += [f"{k}={v}" for k, v in extra.items()]
     return load_config(env={}, overrides=overrides)
 

@@ -30,6 +30,7 @@ def test_experiment_records_marks_tests_them_and_resumes(tmp_path, monkeypatch):
         "learner.sac.updates_per_step=0.25", "learner.sac.n_step=3", "learner.sac.obs_norm=true",
         "learner.sac.privileged_critic=true", "evaluator.eval_every=300", "evaluator.eval_episodes=2",
         "evaluator.final_rank_episodes=2", "evaluator.http_port=0", "learner.checkpoint_every=400",
+        "evaluator.conditions=[]",  # marks under the run's own env: the mix has its own test
     ])
     lines, seen, stop = [], [], threading.Event()
     run_dir = tmp_path / "exp"

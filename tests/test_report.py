@@ -253,7 +253,8 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert (out / f"{name}.safetensors").read_bytes() == src.path.read_bytes()
     assert meta["env_steps"] == 999999 and meta["wall_clock_min"] == 5.0 and meta["held_out"]["episodes"] == 3
     assert meta["held_out"]["condition"] == "5x"  # tested at the paper's conditions, whatever it trained on
-    assert meta["picked_by"] == "the evaluator's top 5 by 10 placements, re-scored on 100 each; the best"
+    assert meta["picked_by"] == ("the evaluator's top 5 by 4 placements per condition (5x, 1x_3cm, 0.5x_3cm, "
+                                 "noise_0.5, jitter_3cm), ranked on their mean, re-scored on 20 each; the best")
     assert meta["recipe"]["actor"]["demo_episodes"] == 2
     assert meta["recipe"]["sac"]["privileged_critic"] is True  # the recipe's settings, not only the overrides
     assert meta["recipe"]["sac"]["critic_layer_norm"] is True

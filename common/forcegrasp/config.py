@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 from forcegrasp.config_values import ConfigError, coerce as _coerce, parse_literal as _parse_literal  # noqa: F401
+from forcegrasp.conditions import ROBUST_MIX
 from forcegrasp.task import ACTION_STEPS, PROPRIOCEPTION
 
 ENV_PREFIX = "FORCEGRASP_"
@@ -62,12 +63,13 @@ class EnvConfig:
     mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
     torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
-    # Domain randomisation (off when empty): drawn afresh every training episode, recorded in every
-    # policy file and seen by the asymmetric critic (task.PRIVILEGED_LAYOUT "domain"), never by the policy.
-    mass_scale_range: list[float] = _f([], "per-episode mass multiplier drawn log-uniformly from [low, high] "
-                                           "(empty: mass_scale in every episode)")
-    torque_noise_range: list[float] = _f([], "per-episode torque noise sigma drawn uniformly from [low, high] N*m "
-                                             "(empty: torque_noise_std in every episode)")
+    # Domain randomisation, on by default (the robust recipe, docs/recipe.md): drawn afresh every
+    # training episode, recorded in every policy file and seen by the asymmetric critic
+    # (task.PRIVILEGED_LAYOUT "domain"), never by the policy. Both empty: the paper's fixed conditions.
+    mass_scale_range: list[float] = _f([0.5, 5.0], "per-episode mass multiplier drawn log-uniformly from [low, high] "
+                                                   "(empty: mass_scale in every episode, as the paper trains)")
+    torque_noise_range: list[float] = _f([0.0, 1.0], "per-episode torque noise sigma drawn uniformly from [low, high] "
+                                                     "N*m (empty: torque_noise_std in every episode, as the paper trains)")
     curriculum_success: float = _f(0.0, "open the randomisation ranges in curriculum_stages steps from the fixed values, "
                                         "each once an actor's last curriculum_window policy episodes succeeded this "
                                         "often (forcegrasp.curriculum; 0: the full ranges from the first episode)", min=0.0)
@@ -166,14 +168,14 @@ class EvaluatorConfig:
     """Evaluator service: periodic evaluation, top-k checkpoints, final ranking, HTTP view."""
 
     eval_every: int = _f(2000, "environment steps between evaluations", min=1)
-    eval_episodes: int = _f(10, "episodes per periodic evaluation", min=1)
+    eval_episodes: int = _f(4, "episodes per periodic evaluation, per test condition", min=1)
     top_k: int = _f(5, "best checkpoints kept", min=1)
-    final_rank_episodes: int = _f(100, "episodes per top-k checkpoint in the final ranking", min=1)
+    final_rank_episodes: int = _f(20, "episodes per top-k checkpoint and test condition in the final ranking", min=1)
     object_aggregate: str = _f("min", "how a checkpoint's per-object scores (with env.objects) make its score: "
                                       "min (as good as its worst object) or mean", choices=("min", "mean"))
-    conditions: list[str] = _f([], "test conditions a checkpoint is scored on, each with eval_episodes and "
-                                   "final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: "
-                                   "5x, 1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's env")
+    conditions: list[str] = _f(list(ROBUST_MIX), "test conditions a checkpoint is scored on, each with eval_episodes "
+                               "and final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: 5x, "
+                               "1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's own env")
     cpu_share: float = _f(0.5, "the evaluator service's CPU budget as a fraction of one core (it pauses between "
                                "evaluations to stay within it; 1: no pause)", min=0.05)
     keep_episode_logs: str = _f("top", "MCAP episode logs kept: of the top-k checkpoints and the latest, or all",

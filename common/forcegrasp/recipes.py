@@ -12,11 +12,12 @@ from forcegrasp.sac_config import SACConfig, check_value
 #: Named presets of SACConfig fields (``learner.recipe``); [learner.sac] overrides go on top.
 #: "paper": the paper's settings (one update per environment step, a critic that sees what the
 #: actor sees). "fast": the recipe of docs/recipe.md, measured on this project's 2-core machines:
-#: a quarter update per step, the asymmetric critic, and critic LayerNorm (with the demonstrations
-#: of `OBJECT_DEMOS`).
+#: a quarter update per step, the asymmetric critic, critic LayerNorm (with the demonstrations
+#: of `OBJECT_DEMOS`), and observation normalisation, without which the noisy torques of the
+#: default randomisation (``env.torque_noise_range``) drown the proprioceptive inputs.
 RECIPES: dict[str, dict] = {
     "paper": {},
-    "fast": {"updates_per_step": 0.25, "privileged_critic": True, "critic_layer_norm": True},
+    "fast": {"updates_per_step": 0.25, "privileged_critic": True, "critic_layer_norm": True, "obs_norm": True},
 }
 
 #: Per-object settings on top of a recipe, under the [learner.sac] overrides: for a lever that helps

@@ -2,11 +2,12 @@
 
 Serves one frozen policy file, as a learner would (``weights/latest``), to a real actor process
 over Zenoh, collects the episodes the actor reports in its transition batches, and runs the same
-policy offline (sampled actions, random placements, the actor's own env settings) for as many
-episodes. With weights frozen, the two rates must agree within sampling error: if they do, a gap
-between the online figure and held-out tests during training comes from the weights changing
-under the actors, not from bookkeeping. A multi-object policy is compared object by object (the
-actor's envs go round its objects; each ended episode says which it was).
+policy offline (sampled actions, random placements, the conditions the policy trained on, which the
+actor is given too) for as many episodes. With weights frozen, the two rates must agree within
+sampling error: if they do, a gap between the online figure and held-out tests during training
+comes from the weights changing under the actors, not from bookkeeping. A multi-object policy is
+compared object by object (the actor's envs go round its objects; each ended episode says which
+it was).
 """
 
 from __future__ import annotations
@@ -28,10 +29,11 @@ def two_proportion_z(k1: int, n1: int, k2: int, n2: int) -> float:
     return 0.0 if se == 0 else (k1 / n1 - k2 / n2) / se
 
 
-def offline_successes(policy_path: Path, episodes: int | dict[str, int], seed: int = 12345,
-                      mass_scale: float = 5.0) -> list[bool] | dict[str, list[bool]]:
-    """Episodes the way an actor runs them: sampled actions, random placements, resets in a row;
-    with ``{object: count}`` (a multi-object policy) that many on each object, by object."""
+def offline_successes(policy_path: Path, episodes: int | dict[str, int],
+                      seed: int = 12345) -> list[bool] | dict[str, list[bool]]:
+    """Episodes the way an actor runs them: sampled actions, random placements, resets in a row,
+    under the conditions the policy trained on (its per-episode draws included); with
+    ``{object: count}`` (a multi-object policy) that many on each object, by object."""
     from forcegrasp.env import FunctionalGraspEnv
     from forcegrasp.policy import Policy
 
@@ -39,7 +41,7 @@ def offline_successes(policy_path: Path, episodes: int | dict[str, int], seed: i
     counts = episodes if isinstance(episodes, dict) else {None: episodes}
     out: dict = {}
     for obj, count in counts.items():
-        env = FunctionalGraspEnv.for_policy(policy.metadata, obj, mass_scale=mass_scale)
+        env = FunctionalGraspEnv.for_policy(policy.metadata, obj)
         out[obj] = []
         obs, _ = env.reset(seed=seed)
         while len(out[obj]) < count:
@@ -64,6 +66,9 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
 
     weights, meta = load_policy_file(policy_path)
     objects = policy_objects(meta)
+    # the conditions the policy trained on, as `FunctionalGraspEnv.for_policy` rebuilds them offline
+    # (a file without the record trained at the paper's fixed conditions)
+    trained = {"mass_scale_range": [], "torque_noise_range": [], **(meta.extra.get("training_conditions") or {})}
     port = free_tcp_port()
     run = "online-check"
     config = load_config(overrides=[
@@ -72,6 +77,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
         f'network.learner_listen=["tcp/127.0.0.1:{port}"]', "network.lease_ms=1000",
         f"learner.sac.obs_norm={str(meta.obs_norm).lower()}", f"env.proprioception={proprioception_of(meta)}",
         *(f"env.{k}={v}" for k, v in action_steps_of(meta).items()),  # the file's step sizes, not today's
+        *(f"env.{k}={json.dumps(v)}" for k, v in trained.items()),
     ])
     keys = Keys(run)
     by_object: dict[str, list[bool]] = {o: [] for o in objects}

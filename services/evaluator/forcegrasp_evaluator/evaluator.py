@@ -13,8 +13,8 @@ best policy served as a Zenoh queryable and over read-only HTTP.
 - Top k (``evaluator.top_k``) in ``<output_dir>/<run>/evaluator/top/`` (see ``topk.py`` for the
   crash-safety rules); a newcomer is scored on ``evaluator.final_rank_episodes`` ranking
   placements and the best member by that score is marked in the index and served.
-- Episodes go to ``<output_dir>/<run>/evaluator/episodes/<step>/{eval,rank}-<i>.mcap``
-  (``{eval,rank}-<object>-<i>.mcap`` in a run of several objects, ``env.objects``).
+- Episodes go to ``<output_dir>/<run>/evaluator/episodes/<step>/{eval,rank}[-<object>][-<condition>]-<i>.mcap``
+  (the object in a run of several, ``env.objects``; the test condition, ``evaluator.conditions``).
 - Stats on ``forcegrasp/<run>/stats/evaluator/<id>``, liveliness token, SIGINT/SIGTERM stop it.
 """
 
