@@ -426,4 +426,5 @@ def test_the_four_arms_section_states_each_arms_pooled_rate_and_words_only_the_a
     lo, hi = wilson(61, 100)
     assert f"| mug | 100% [{wilson(100, 100)[0]:.0%}–100%] | – | – | 61% [{lo:.0%}–{hi:.0%}] | 100% / 25% |" in text
     assert "one open-loop trajectory" in text and f"the mug 61% [{lo:.0%}–{hi:.0%}]" in text
+    assert "is the gap between Table I's arm and commanded only: the mug 39 points." in text
     assert "torque sensors alone" not in text and "Measured only" not in text  # arms not shipped are not worded

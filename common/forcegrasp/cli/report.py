@@ -155,6 +155,13 @@ def ablation_section(summary: dict, objects: list[str], scripted: dict) -> list[
                     "success (" + ", ".join(f"the {o} {r}" for o, r in blind_arm.items()) + ") is the share of the "
                     "jitter square that trajectory happens to grasp. Compare it with the blind scripted approach "
                     "(a straight approach to the nominal pose), not with the arms that feel the object.")
+        rates = {o: [pooled(arm_rows(summary, o, arm), "held_out") for arm in (TABLE_I, (False, "commanded"))]
+                 for o in blind_arm}
+        gaps = {o: full[0] / full[1] - blind[0] / blind[1] for o, (full, blind) in rates.items() if full}
+        if gaps:
+            said.append("What force information is worth within the paper's ±2 cm is the gap between Table I's arm "
+                        "and commanded only: " + ", ".join(f"the {o} {100 * g:.0f} points" for o, g in gaps.items())
+                        + ".")
     measured_only = {o: r for o in objects if (r := _pooled_rate(summary, o, (False, "measured")))}
     if measured_only:
         said.append("Measured only is the paper's ablation but not an arm without force here: every joint is a position "
