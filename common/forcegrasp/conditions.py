@@ -11,6 +11,7 @@ placement. The evaluator ranks checkpoints on the mean of its conditions' scores
 ``1x_3cm``     the object's own mass, 3 cm movement tolerance (the paper's Fig. 7)
 ``0.5x_3cm``   half its mass, 3 cm movement tolerance (Fig. 7)
 ``1x_1cm``     its own mass with the strict 1 cm tolerance of training
+``0.5x_1cm``   half its mass with the strict 1 cm tolerance
 ``noise_0.5``  5x mass, Gaussian joint-torque noise of 0.5 N·m (Fig. 8's middle)
 ``jitter_3cm`` 5x mass, object jittered within ±3 cm instead of ±2 cm
 =============  ==============================================================================
@@ -27,6 +28,7 @@ CONDITIONS: dict[str, dict] = {
     "1x_3cm": {"mass_scale": 1.0, "object_tolerance": 0.03},
     "0.5x_3cm": {"mass_scale": 0.5, "object_tolerance": 0.03},
     "1x_1cm": {"mass_scale": 1.0},
+    "0.5x_1cm": {"mass_scale": 0.5},
     "noise_0.5": {"mass_scale": 5.0, "torque_noise_std": 0.5},
     "jitter_3cm": {"mass_scale": 5.0, "jitter": 0.03},
 }

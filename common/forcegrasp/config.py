@@ -175,7 +175,7 @@ class EvaluatorConfig:
                                       "min (as good as its worst object) or mean", choices=("min", "mean"))
     conditions: list[str] = _f(list(ROBUST_MIX), "test conditions a checkpoint is scored on, each with eval_episodes "
                                "and final_rank_episodes episodes, ranked on their mean (forcegrasp.conditions: 5x, "
-                               "1x_3cm, 0.5x_3cm, 1x_1cm, noise_0.5, jitter_3cm); empty: the run's own env")
+                               "1x_3cm, 0.5x_3cm, 1x_1cm, 0.5x_1cm, noise_0.5, jitter_3cm); empty: the run's own env")
     cpu_share: float = _f(0.5, "the evaluator service's CPU budget as a fraction of one core (it pauses between "
                                "evaluations to stay within it; 1: no pause)", min=0.05)
     keep_episode_logs: str = _f("top", "MCAP episode logs kept: of the top-k checkpoints and the latest, or all",
