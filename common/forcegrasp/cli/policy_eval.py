@@ -93,7 +93,10 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
                "success_rate": sum(r.success for r in results) / len(results),
                "mean_return": sum(r.ret for r in results) / len(results),
                "failures": dict(Counter(r.failure for r in results if not r.success)),
-               "env": {k: getattr(env, k) for k in ("mass_scale", "torque_noise_std", "jitter", "object_tolerance")},
+               # a policy trained under randomisation is tested under it unless a setting fixes it
+               "env": {k: (list(v) if isinstance(v, tuple) else v) for k in (
+                   "mass_scale", "torque_noise_std", "mass_scale_range", "torque_noise_range", "jitter",
+                   "object_tolerance") for v in [getattr(env, k)]},
                "seconds": round(time.perf_counter() - t0, 1)}
         rows.append(row)
         log(f"{obj + ': ' if len(names) > 1 else ''}{key or 'settings'} = "
