@@ -1,6 +1,7 @@
 """The robustness table from `forcegrasp experiment` records tested under several conditions: per
 run, the held-out success of the evaluator's pick at each mark under every test condition
-(`forcegrasp.conditions`), their mean, and the run's environment steps and steps per second.
+(`forcegrasp.conditions`), their mean, and the run's environment steps and steps per second; a
+run is named as its record (``experiments/<name>.json``).
 Only records made with ``evaluator.conditions`` take part; every file must be a version-2 experiment
 record (`forcegrasp.cli.experiment.check_record`).
 
@@ -51,7 +52,7 @@ def rows(records: list[dict]) -> list[str]:
     head = ["| run | object | seed | randomisation | mark | " + " | ".join(conditions) + " | mean | env steps | steps/s |",
             "|---|---|---:|---|---:|" + "---:|" * len(conditions) + "---:|---:|---:|"]
     out = []
-    for r in sorted(records, key=lambda r: (r["object"], randomisation(r), r["seed"])):
+    for r in sorted(records, key=lambda r: (r["object"], randomisation(r), r["seed"], r["config"]["run"]["name"])):
         for m in r["marks"]:
             pick = m.get("test", {}).get("best")
             if pick is None or "conditions" not in pick:
@@ -60,7 +61,7 @@ def rows(records: list[dict]) -> list[str]:
                      for c in conditions]
             steps = m.get("steps", {})
             rate = steps.get("latest", 0) / m["elapsed_s"] if m.get("elapsed_s") else 0
-            out.append(f"| {r['label']} | {r['object']} | {r['seed']} | {randomisation(r)} | {m['minute']:.0f} min | "
+            out.append(f"| `{r['config']['run']['name']}` | {r['object']} | {r['seed']} | {randomisation(r)} | {m['minute']:.0f} min | "
                        + " | ".join(cells) + f" | **{pick['success_rate']:.0%}** | {steps.get('best', 0) / 1000:.0f} k "
                        f"| {rate:.0f} |")
     return head + out if out else []

@@ -16,8 +16,8 @@ def test_rows_come_from_the_records_tested_under_conditions(capsys):
     assert robustness_table.main([str(p) for p in FIXTURES]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "| run | object | seed | randomisation | mark | 5x | noise_0.5 | mean | env steps | steps/s |"
-    assert lines[2:] == ["| the default, robust test | camera | 1 | none (5× only) | 10 min | 60% | 60% | **60%** | 25 k | 50 |",
-                         "| the default, robust test | camera | 1 | none (5× only) | 20 min | 100% | 100% | **100%** | 50 k | 50 |"]
+    assert lines[2:] == ["| `fx-camera-s1` | camera | 1 | none (5× only) | 10 min | 60% | 60% | **60%** | 25 k | 50 |",
+                         "| `fx-camera-s1` | camera | 1 | none (5× only) | 20 min | 100% | 100% | **100%** | 50 k | 50 |"]
 
 
 def test_an_unversioned_record_is_refused(tmp_path, capsys):
