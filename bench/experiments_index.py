@@ -61,8 +61,7 @@ the default recipe without its randomisation and observation normalisation, on t
 `bench/snapshot_spread.py` for one run (not an experiment record: the tables do not read it), and
 `benchmarks/` the logs of the benchmark runs whose figures docs/benchmarks.md quotes (their names
 carry the date: the machine's speed varies between days), with `probes/ff_information.json` the probe
-figures docs/results.md shows, and `reference/5x-only.json` the Fig. 7 and Fig. 8 rows of the
-force-feedback policies trained at 5x mass only, which `forcegrasp report` draws beside the shipped ones.
+figures docs/results.md shows.
 """
 
 

@@ -1,7 +1,7 @@
 """The shipped policies and `forcegrasp report`: every committed policy matches its env and
 succeeds at the rate its record and docs/results.md claim; the quick report agrees with the full;
-the scripted rows run on the policies' placements; the figures draw every arm and the 5x-only
-reference."""
+the scripted rows run on the policies' placements; the figures draw every arm, and the
+randomised family beside the 5x-only one."""
 
 from __future__ import annotations
 
@@ -36,19 +36,21 @@ def test_policies_are_shipped():
     assert SHIPPED, f"no policies in {POLICIES_DIR}"
     for s in SHIPPED:
         cmd = "-cmd" if s.proprioception == "commanded" else ""
-        assert s.name == f"{'+'.join(s.objects)}-{'ff' if s.force_feedback else 'noff'}{cmd}-s{s.meta['seed']}"
+        fixed = "" if s.randomised else "-5x"
+        assert s.name == f"{'+'.join(s.objects)}-{'ff' if s.force_feedback else 'noff'}{cmd}{fixed}-s{s.meta['seed']}"
+    assert any(s.randomised for s in SHIPPED) and any(not s.randomised for s in SHIPPED)  # both families
 
 
 def test_each_shipped_policys_arm_comes_from_its_file_and_sidecar():
     """The sidecar's force feedback and proprioception are the file's (measured and commanded
-    policies observe the same sizes); the report sorts by object, arm, seed."""
+    policies observe the same sizes); the report sorts by object, arm, family (randomised first), seed."""
     for s in SHIPPED:
         meta = load_policy_file(s.path)[1]
         assert (meta.force_feedback, proprioception_of(meta)) == s.arm, s.name
         assert s.arm in ARMS
     arms = list(ARMS)
     assert [s.name for s in SHIPPED] == [s.name for s in sorted(SHIPPED, key=lambda s: (
-        s.multi, "+".join(s.objects), arms.index(s.arm), s.meta["seed"]))]
+        s.multi, "+".join(s.objects), arms.index(s.arm), not s.randomised, s.meta["seed"]))]
 
 
 def test_a_sidecar_without_proprioception_is_refused(tmp_path, capsys):
@@ -72,7 +74,8 @@ def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
     if shipped.multi:  # its objects' scores are checked by the report's generalist rows
         assert meta.extra["objects"] == shipped.objects and meta.object_name == ""
         return
-    env = FunctionalGraspEnv.for_policy(meta)  # its object, observation and action step sizes
+    # its object, observation and action step sizes, at the conditions its record was tested under
+    env = FunctionalGraspEnv.for_policy(meta, mass_scale_range=None, torque_noise_range=None, mass_scale=5.0)
     assert meta.object_name == shipped.obj and meta.force_feedback == shipped.force_feedback
     assert meta.obs_dim == env.observation_space.shape[0] == (77 if shipped.force_feedback else 53)
     assert meta.act_dim == env.action_space.shape[0] == 7
@@ -93,16 +96,13 @@ def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
 
 
 def test_quick_report_agrees_with_the_committed_results(tmp_path):
-    from forcegrasp.cli.report import REFERENCE_5X
     from forcegrasp.report import PROTOCOLS
 
     full = json.loads(RESULTS.read_text())
     assert full["protocol"] == "full"
     assert set(full["policies"]) == {s.name for s in SHIPPED if not s.multi}, "docs/results.md is older than assets/policies/"
     assert set(full.get("generalists", {})) == {s.name for s in SHIPPED if s.multi}
-    out = tmp_path / "docs"  # the page reads the 5x-only reference beside it, as docs/ does in the repository
-    (tmp_path / REFERENCE_5X).parent.mkdir(parents=True)
-    (tmp_path / REFERENCE_5X).write_bytes((REPO / REFERENCE_5X).read_bytes())
+    out = tmp_path / "docs"
     proc = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "report", "--quick", "--out", str(out),
                            "--no-strips"], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -111,7 +111,7 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
     for png in ("force-feedback", "adaptation", "lighter", "torque-noise", "trajectories"):
         assert (out / "results" / f"{png}.png").stat().st_size > 5000
     for name, row in quick["policies"].items():
-        for kind in ("held_out", "mass", "noise"):
+        for kind in ("held_out", "mass", "noise", "condition"):
             for value, cell in row[kind].items():
                 claimed = full["policies"][name][kind][value]
                 assert agree((cell["successes"], cell["episodes"]), (claimed["successes"], claimed["episodes"])), \
@@ -131,21 +131,23 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
 def test_scripted_rows_run_on_the_policies_placements():
     """Told the offset, the straight approach grasps the mug at 5x on (nearly) every held-out placement;
     blind, far fewer: on the very placements (offsets, episode seeds) the policies run."""
-    from forcegrasp.report import run_experiments, scripted_env, summarise_scripted
+    from forcegrasp.report import BAR_CONDITIONS, run_experiments, scripted_env, summarise_scripted
 
     mug = next(s for s in SHIPPED if s.obj == "mug" and s.arm == TABLE_I)
-    protocol = {"held_out": 8, "mass": 2, "noise": 1}
+    protocol = {"held_out": 8, "mass": 2, "noise": 1, "condition": 2}
     results, scripted = run_experiments([mug], protocol, workers=1, log=lambda s: None)
-    for kind, values in (("held_out", [""]), ("mass", ["1", "0.5"])):
+    for kind, values in (("held_out", [""]), ("mass", ["1", "0.5"]), ("condition", ["jitter_3cm", "0.5x_1cm"])):
         for value in values:
             offsets = [e["offset"] for e in results[mug.name][kind][value]]
             assert len(offsets) == protocol[kind]
-            for mode in ("told", "blind"):
+            for mode in ("told", "blind") if kind != "condition" else ("told",):
                 assert [e["offset"] for e in scripted["mug"][mode][kind][value]] == offsets, (mode, kind, value)
+    assert set(results[mug.name]["condition"]) == set(BAR_CONDITIONS)
+    assert "noise_0.5" not in scripted["mug"]["told"]["condition"] and "condition" not in scripted["mug"]["blind"]
     env = scripted_env("mug", "mass", 0.5)  # the policies' conditions: 0.5x mass, 0.03 m, their jitter
     assert (env.mass_scale, env.object_tolerance, env.jitter) == (0.5, 0.03, mug.meta["env"]["jitter"])
     summary = summarise_scripted(scripted)["mug"]
-    assert set(summary["told"]) == {"held_out", "mass"}  # no noise: the script ignores observations
+    assert set(summary["told"]) == {"held_out", "mass", "condition"}  # no noise: the script ignores observations
     told, blind = summary["told"]["held_out"][""]["successes"], summary["blind"]["held_out"][""]["successes"]
     assert told >= 7 and blind <= told - 3, (told, blind)
 
@@ -184,47 +186,86 @@ def test_fig4_groups_every_arm_with_the_scripted_lines(tmp_path):
         assert list(blind[0].get_ydata()) == [30, 30] and blind[0].get_linestyle() == ":"
         _plt().close(fig)
         assert fig_force_feedback(summary, ["mug", "camera"], tmp_path / "f.png", scripted).stat().st_size > 5000
-    table = results_table(four, ["mug", "camera"], scripted)
-    assert "scripted told / blind" in table[0] and "| 100% / 30% |" in table[2]
+    table = results_table(four, ["mug", "camera"], scripted)  # no randomised family: every Table I row
+    assert table[0].startswith("| object | trained conditions | 1x mass, 3 cm |") and len(table) == 4
+    assert table[2].startswith("| mug | **90%** (77%") and "| 100% / – / – / = / – |" in table[2]
 
 
-def test_figs_7_and_8_draw_the_5x_only_reference():
-    """The committed reference (the policies trained at 5x only) is read and drawn beside the shipped
-    rows: hatched bars in Fig. 7, dashed lines in the object's colour in Fig. 8."""
-    from forcegrasp.cli.report import REFERENCE_5X, read_reference
+def _light_row(obj: str, seed: int, randomised: bool, rate: int) -> dict:
+    """A `summarise` row of Table I's arm with every Fig. 7/8 cell at ``rate`` of 10 and the bar's
+    conditions at ``rate`` of 10 too."""
+    from forcegrasp.report import BAR_CONDITIONS, MASSES, NOISE_LEVELS
+
+    return {**_row(obj, TABLE_I, seed, (rate, 10)), "randomised": randomised,
+            "mass": {f"{m:g}": _cell(rate, 10) for m in MASSES},
+            "noise": {f"{v:g}": _cell(rate, 10) for v in NOISE_LEVELS},
+            "condition": {c: _cell(rate, 10) for c in BAR_CONDITIONS}}
+
+
+def test_the_randomised_family_is_reported_beside_the_5x_only_one():
+    """With both families shipped, the table, Fig. 7 and Fig. 8 report the randomised policies and
+    draw the 5x-only ones beside them (hatched bars, dashed lines in the object's colour); the
+    ablation compares the fixed family only; with one family there is no comparison."""
+    from forcegrasp.cli.report import results_table
     from forcegrasp.cli.report_figures import _plt, draw_lighter, draw_noise
-    from forcegrasp.report import MASSES, NOISE_LEVELS
+    from forcegrasp.report import MASSES, ablation_rows, robust_and_reference
 
-    reference = read_reference(REPO / REFERENCE_5X)
-    assert "5x" in reference["what"] and reference["policies"]
-    for row in reference["policies"].values():
-        assert set(row["mass"]) == {f"{m:g}" for m in MASSES} and set(row["noise"]) == {f"{v:g}" for v in NOISE_LEVELS}
-        for cell in [*row["mass"].values(), *row["noise"].values()]:
-            assert cell["rate"] == cell["successes"] / cell["episodes"]
-    objects = sorted({r["object"] for r in reference["policies"].values()})
-    # shipped rows that are the reference's own (the shipped force-feedback policies may be the 5x-only ones themselves)
-    summary = {name: {**r, "force_feedback": True, "proprioception": "measured"} for name, r in reference["policies"].items()}
+    objects = ["mug", "camera"]
+    summary = {f"{o}-ff-s0": _light_row(o, 0, True, 10) for o in objects}
+    summary |= {f"{o}-ff-5x-s0": _light_row(o, 0, False, 4) for o in objects}
+    summary["mug-noff-5x-s0"] = {**_light_row("mug", 0, False, 2), "force_feedback": False}
+    robust, reference = robust_and_reference(summary)
+    assert set(robust) == {"mug-ff-s0", "camera-ff-s0"} and set(reference) == {"mug-ff-5x-s0", "camera-ff-5x-s0",
+                                                                               "mug-noff-5x-s0"}
+    assert set(ablation_rows(summary)) == set(reference)
+    assert robust_and_reference({k: v for k, v in summary.items() if "5x" in k}) == (
+        {k: v for k, v in summary.items() if "5x" in k}, None)
+    assert all("**100%**" in line for line in results_table(summary, objects, {})[2:])  # the randomised rows
     scripted = {o: {"told": {"mass": {"1": _cell(10, 10), "0.5": _cell(9, 10)}}} for o in objects}
     for given in (reference, None):
         fig, (light, noise) = _plt().subplots(1, 2)
-        draw_lighter(light, summary, objects, scripted, given)
-        draw_noise(noise, summary, objects, given)
+        draw_lighter(light, robust, objects, scripted, given)
+        draw_noise(noise, robust, objects, given)
         hatched = [p for p in light.patches if p.get_hatch()]
         labels = [t.get_text() for t in light.get_legend().get_texts()]
         dashed = {line.get_label(): line for line in noise.lines if line.get_linestyle() == "--"}
         solid = {line.get_label(): line for line in noise.lines if line.get_linestyle() == "-"}
+        assert all(list(line.get_ydata()) == [100.0] * 11 for line in solid.values())
         if given is None:
             assert not hatched and not dashed and len(light.patches) == len(objects) * len(MASSES)
         else:
             assert len(hatched) == len(light.patches) / 2 == len(objects) * len(MASSES)
+            assert [p.get_height() for p in hatched] == [40.0] * len(hatched)  # Table I's arm of the 5x family
             assert {"1x mass, trained at 5x only", "0.5x mass, trained at 5x only"} <= set(labels)
-            assert sorted(dashed) == [f"{o}, trained at 5x only" for o in objects]
+            assert sorted(dashed) == sorted(f"{o}, trained at 5x only" for o in objects)
             for o in objects:
                 assert dashed[f"{o}, trained at 5x only"].get_color() == solid[o].get_color()
-                assert list(dashed[f"{o}, trained at 5x only"].get_ydata()) == list(solid[o].get_ydata())
+                assert list(dashed[f"{o}, trained at 5x only"].get_ydata()) == [40.0] * 11
         diamonds = [line for line in light.lines if line.get_marker() == "D"]
         assert len(diamonds) == len(objects) * len(MASSES) and "scripted, told the offset" in labels
         _plt().close(fig)
+
+
+def test_the_robustness_section_marks_each_policy_against_the_bar():
+    from forcegrasp.cli.report import misses, robustness_section
+
+    good = _light_row("mug", 0, True, 10)
+    short = _light_row("mug", 1, True, 10)
+    short["condition"]["noise_0.5"] = _cell(8, 10)
+    short["condition"]["0.5x_1cm"] = _cell(1, 10)  # the 1 cm conditions have no bar
+    fixed = _light_row("mug", 0, False, 4)
+    assert misses(good) == [] and misses(short) == ["torque noise 0.5 N·m: 80%"]
+    assert len(misses(fixed)) == 5
+    scripted = {"mug": {"told": {"held_out": {"": _cell(10, 10)}, "condition": {"jitter_3cm": _cell(7, 10)}}}}
+    text = "\n".join(robustness_section({"mug-ff-s0": good, "mug-ff-s1": short, "mug-ff-5x-s0": fixed},
+                                        ["mug"], scripted))
+    rows = [line for line in text.splitlines() if line.startswith("| `")]
+    assert [r.split("`")[1] for r in rows] == ["mug-ff-s0", "mug-ff-s1", "mug-ff-5x-s0"]  # randomised first
+    assert rows[1].count("*") == 2 and rows[2].count("*") == 10  # the misses in italics, 1 cm never
+    assert "| scripted, told the offset: mug | – | – | 100% [" in text and "= trained" in text
+    assert "1 of the 2 policies trained with randomisation meet every bar; short of it: `mug-ff-s1` " \
+           "(torque noise 0.5 N·m: 80%)." in text
+    assert robustness_section({"mug-noff-s0": {**good, "force_feedback": False}}, ["mug"], {}) == []
 
 
 def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
@@ -258,6 +299,13 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert meta["recipe"]["actor"]["demo_episodes"] == 2
     assert meta["recipe"]["sac"]["privileged_critic"] is True  # the recipe's settings, not only the overrides
     assert meta["recipe"]["sac"]["critic_layer_norm"] is True
+    fixed = load_config(env={}, overrides=[f"env.object={src.obj}", "run.name=r", "env.mass_scale_range=[]",
+                                           "env.torque_noise_range=[]"]).to_dict()
+    (run / "experiment.json").write_text(json.dumps({**record, "config": fixed}))
+    assert ship_main([str(run), "--out", str(out), "--episodes", "1", "--workers", "1"]) == 0
+    five = f"{src.obj}-{'ff' if src.force_feedback else 'noff'}-5x-s7"  # the paper's fixed conditions only
+    assert json.loads((out / f"{five}.json").read_text())["env"]["mass_scale_range"] == []
+    (run / "experiment.json").write_text(json.dumps(record))
     assert ship_main([str(run), "--mark", "10", "--out", str(out)]) == 2  # no such mark: a clear error
     (run / "experiment.json").write_text(json.dumps({k: v for k, v in record.items() if k not in ("format", "version")}))
     assert ship_main([str(run), "--out", str(tmp_path / "none")]) == 2  # a record of before versions: refused
@@ -386,7 +434,8 @@ def test_ship_names_and_tests_a_policy_of_several_objects_on_each(tmp_path):
 
 def test_a_report_carries_over_the_episodes_of_unchanged_policy_files_only(tmp_path):
     """``--reuse``: a policy whose file is byte-for-byte what the previous report tested keeps its
-    episodes (only its trajectories run again); a changed file or another protocol runs afresh."""
+    episodes (only its trajectories and the settings it lacks run again); a changed file or another
+    protocol runs afresh; the scripted cells it has are not run again."""
     import shutil
 
     from forcegrasp.report import carried_over, file_digest, run_experiments
@@ -398,17 +447,22 @@ def test_a_report_carries_over_the_episodes_of_unchanged_policy_files_only(tmp_p
             shutil.copyfile(s.path.with_suffix(suffix), folder / f"{s.name}{suffix}")
     a, b = shipped_policies(folder)
     kept = {"held_out": {"": [{"index": 0, "offset": [0.0, 0.0], "success": False, "failure": "made up", "length": 1}]}}
+    cells = {mode: {"held_out": {"": {"successes": 1, "episodes": 2}}} for mode in ("told", "blind")}
     previous = {"protocol": "quick", "digests": {a.name: file_digest(a.path), b.name: "0" * 64},
-                "episodes": {a.name: kept, b.name: kept}, "scripted": {a.obj: {}}}
+                "episodes": {a.name: kept, b.name: kept}, "scripted": {a.obj: cells}}
     done, scripted_done = carried_over(previous, [a, b], "quick")
-    assert list(done) == [a.name] and scripted_done == [a.obj]  # b's file is not the one tested
-    assert carried_over(previous, [a, b], "full") == ({}, [])  # another protocol measures other counts
-    assert carried_over(None, [a, b], "quick") == ({}, [])
-    protocol = {"held_out": 2, "mass": 0, "noise": 0, "trajectory": 3}
+    assert list(done) == [a.name] and scripted_done == {a.obj: cells}  # b's file is not the one tested
+    assert carried_over(previous, [a, b], "full") == ({}, {})  # another protocol measures other counts
+    assert carried_over(None, [a, b], "quick") == ({}, {})
+    protocol = {"held_out": 2, "mass": 0, "noise": 0, "trajectory": 3, "condition": 0}
     results, scripted = run_experiments([a], protocol, workers=2, log=lambda s: None, done=done,
                                         scripted_done=scripted_done)
     assert results[a.name]["held_out"] == kept["held_out"] and scripted == {}  # nothing ran again...
     assert len(results[a.name]["trajectory"][""]) == 3  # ...but the trajectories, which are not kept
+    more = {**protocol, "mass": 1}  # an experiment the previous report did not run: only it runs
+    results, scripted = run_experiments([a], more, workers=2, log=lambda s: None, done=done, scripted_done=scripted_done)
+    assert results[a.name]["held_out"] == kept["held_out"] and len(results[a.name]["mass"]["0.5"]) == 1
+    assert set(scripted[a.obj]["told"]) == {"mass"}
     assert done[a.name] == kept  # the caller's record is not changed
 
 

@@ -2,13 +2,18 @@
 
 A shipped policy is a policy file plus a JSON sidecar (`ship`): object, observation arm (force
 feedback and proprioception, `ARMS`), seed, environment steps, wall-clock, recipe, and its score on
-100 held-out placements. The experiments (`PROTOCOLS`), each over the ``"test"`` placement stream
-that never picked a checkpoint:
+100 held-out placements. Policies come in two families: trained under randomised mass and torque
+noise (the default recipe, `Shipped.randomised`; named ``<object>-<arm>-s<seed>``) and trained at
+the paper's fixed conditions (5x mass, no noise; ``<object>-<arm>-5x-s<seed>``), the family the
+observation-arm ablation and the reference rows of Figs. 7 and 8 come from. The experiments
+(`PROTOCOLS`), each over the ``"test"`` placement stream that never picked a checkpoint:
 
 - ``held_out``: success on N placements in the ±2 cm square; the same episodes give the
   adaptation map (Fig. 6) and the bars per observation arm (Fig. 4);
 - ``mass``: success at 1x and 0.5x the object's mass with the 0.03 m movement tolerance (Fig. 7);
 - ``noise``: success with Gaussian joint-torque noise of 0 to 1 N·m (Fig. 8);
+- ``condition``: success under each named test condition of the robustness bar (`BAR_CONDITIONS`,
+  `forcegrasp.conditions`), for the policies the bar judges (`bar_policies`);
 - ``trajectory``: palm and object x over time for the paper's three placements of Fig. 3.
 
 A policy of several objects (``env.objects``; its sidecar lists ``objects``) runs none of these: it
@@ -17,13 +22,14 @@ the paper's objects it never trained on (``unseen``): the report's generalist se
 
 The scripted straight approach (`forcegrasp.scripted`) runs ``held_out`` and ``mass`` on the same
 placements per object, told the true offset (what a well-aimed straight grasp achieves) and blind
-(the best an arm without object information can do): the reference rows of Figs. 4 and 7. It
-ignores observations, so torque noise cannot change it and ``noise`` does not run it.
+(the best an arm without object information can do): the reference rows of Figs. 4 and 7; told,
+it also runs the bar's conditions. It ignores observations, so torque noise cannot change it and
+neither ``noise`` nor the ``noise_0.5`` condition runs it.
 
 Work is cut into (policy or scripted mode, experiment, setting, placement chunk) jobs and spread
 over processes. A report can carry over the episodes of a previous one (`carried_over`) for the
-policies whose file is byte-for-byte the one it tested, under the same protocol: adding a policy
-then costs that policy's episodes, not every policy's.
+policies whose file is byte-for-byte the one it tested, under the same protocol, cell by cell:
+adding a policy (or an experiment) then costs that policy's (that experiment's) episodes only.
 """
 
 from __future__ import annotations
@@ -39,6 +45,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from forcegrasp import ASSETS_DIR
+from forcegrasp.conditions import CONDITIONS
 from forcegrasp.task import PROPRIOCEPTION
 
 POLICIES_DIR = ASSETS_DIR / "policies"
@@ -47,10 +54,15 @@ POLICIES_DIR = ASSETS_DIR / "policies"
 FRESH_WORKERS = multiprocessing.get_context("spawn")
 
 #: Trials per point. The paper ran 100 placements for Fig. 6 and 10 trials per point for Figs. 7-8.
+#: ``condition``: per named condition of the bar, the issue's 100 held-out placements.
 PROTOCOLS = {
-    "full": {"held_out": 100, "mass": 50, "noise": 20, "trajectory": 3},
-    "quick": {"held_out": 20, "mass": 10, "noise": 5, "trajectory": 3},
+    "full": {"held_out": 100, "mass": 50, "noise": 20, "trajectory": 3, "condition": 100},
+    "quick": {"held_out": 20, "mass": 10, "noise": 5, "trajectory": 3, "condition": 5},
 }
+#: The robustness bar's test conditions beyond the trained ones (``held_out``): the paper's lighter
+#: objects at its 3 cm tolerance and at the strict 1 cm, its torque noise, and wider jitter.
+BAR_CONDITIONS = ("1x_3cm", "0.5x_3cm", "1x_1cm", "0.5x_1cm", "noise_0.5", "jitter_3cm")
+SCRIPTED_SKIPS = {"noise_0.5"}  # the scripted approach ignores observations: noise cannot change it
 MASSES = (1.0, 0.5)
 TRAINED_MASS = 5.0  # the paper's training mass: the held-out, noise and trajectory experiments run at it
 LIGHT_TOLERANCE = 0.03
@@ -76,6 +88,12 @@ PAPER = {
     "mass_0.5": "above 50 % on the mug and the camera",
     "noise": "camera 80 % up to 0.5 N·m; mug and drill high up to 0.1 N·m",
 }
+
+
+def randomised(env: dict) -> bool:
+    """Whether a run's ``[env]`` trained under randomised mass or torque noise (its ranges), not only
+    at the paper's fixed conditions: which family a shipped policy belongs to."""
+    return bool(env.get("mass_scale_range") or env.get("torque_noise_range"))
 
 
 @dataclass(frozen=True)
@@ -112,9 +130,14 @@ class Shipped:
     def arm(self) -> tuple[bool, str]:
         return self.force_feedback, self.proprioception
 
+    @property
+    def randomised(self) -> bool:
+        return randomised(self.meta.get("env", {}))
+
 
 def shipped_policies(folder: Path = POLICIES_DIR) -> list[Shipped]:
-    """Every ``*.safetensors`` with its ``.json`` sidecar, sorted by object, arm (`ARMS`), seed.
+    """Every ``*.safetensors`` with its ``.json`` sidecar, sorted by object, arm (`ARMS`), family
+    (randomised first), seed.
     A sidecar must name the proprioception (`ship` records it): measured and commanded policies
     observe the same sizes, so nothing else tells their arms apart without loading the file."""
     out = []
@@ -129,7 +152,8 @@ def shipped_policies(folder: Path = POLICIES_DIR) -> list[Shipped]:
                              f"{s.meta.get('proprioception')!r}; re-ship the policy or add the key")
         out.append(s)
     arms = list(ARMS)
-    return sorted(out, key=lambda s: (s.multi, "+".join(s.objects), arms.index(s.arm), s.meta.get("seed", 0)))
+    return sorted(out, key=lambda s: (s.multi, "+".join(s.objects), arms.index(s.arm), not s.randomised,
+                                      s.meta.get("seed", 0)))
 
 
 def arm_of(row: dict) -> tuple[bool, str]:
@@ -140,6 +164,32 @@ def arm_of(row: dict) -> tuple[bool, str]:
 def arm_rows(summary: dict, obj: str, arm: tuple[bool, str]) -> list[dict]:
     """The `summarise` rows (one per seed) of one object and arm."""
     return [r for r in summary.values() if r["object"] == obj and arm_of(r) == arm]
+
+
+def family(summary: dict, randomised: bool) -> dict:
+    """The `summarise` rows of one family: trained randomised, or at the paper's fixed conditions."""
+    return {n: r for n, r in summary.items() if bool(r.get("randomised")) == randomised}
+
+
+def robust_and_reference(summary: dict) -> tuple[dict, dict | None]:
+    """The rows the results table and Figs. 7-8 report, and the rows they compare with: the
+    randomised family beside the fixed one where Table I's arm has randomised policies; otherwise
+    every row, with no comparison."""
+    robust = family(summary, True)
+    if any(arm_of(r) == TABLE_I for r in robust.values()):
+        return robust, family(summary, False)
+    return summary, None
+
+
+def ablation_rows(summary: dict) -> dict:
+    """The rows the observation-arm ablation (Fig. 4, Fig. 3) compares: the fixed-condition family,
+    where every arm trained under the same conditions; every row where there is no such family."""
+    return family(summary, False) or summary
+
+
+def value_key(value) -> str:
+    """A setting's key in results trees: "" for none, a condition's name, a number as ``%g``."""
+    return "" if value is None else value if isinstance(value, str) else f"{value:g}"
 
 
 def pooled(rows: list[dict], kind: str, value: str = "") -> tuple[int, int] | None:
@@ -170,6 +220,8 @@ def conditions(kind: str, value) -> dict:
         return {"mass_scale": TRAINED_MASS, "torque_noise_std": value}
     if kind in ("object", "unseen"):  # a generalist on one object, trained on or never seen
         return {"object_name": value, "mass_scale": TRAINED_MASS}
+    if kind == "condition":
+        return dict(CONDITIONS[value])
     return {"mass_scale": TRAINED_MASS}
 
 
@@ -244,8 +296,15 @@ def unseen_objects(s: Shipped) -> list[str]:
     return [o for o in PAPER_OBJECTS if o not in s.objects] if s.multi else []
 
 
+def bar_policies(policies: list[Shipped]) -> list[Shipped]:
+    """The policies the robustness bar judges: Table I's arm of the randomised family (the default
+    recipe), or of every one-object policy where none was trained with randomisation."""
+    table_i = [s for s in policies if not s.multi and s.arm == TABLE_I]
+    return [s for s in table_i if s.randomised] or table_i
+
+
 def plan(policies: list[Shipped], protocol: dict, chunks: int) -> list[tuple]:
-    jobs = []
+    jobs, judged = [], {s.name for s in bar_policies(policies)}
     for s in policies:
         if s.multi:
             settings = [(kind, o, protocol["held_out"]) for kind, objs in (("object", s.objects),
@@ -254,15 +313,20 @@ def plan(policies: list[Shipped], protocol: dict, chunks: int) -> list[tuple]:
             settings = [("held_out", None, protocol["held_out"]), ("trajectory", None, len(FIG3_OFFSETS))]
             settings += [("mass", m, protocol["mass"]) for m in MASSES]
             settings += [("noise", v, protocol["noise"]) for v in NOISE_LEVELS]
+            if s.name in judged:
+                settings += [("condition", c, protocol["condition"]) for c in BAR_CONDITIONS]
         for kind, value, count in settings:
             jobs += _chunked((s.name, kind, value), (str(s.path), kind, value), count, chunks)
     return jobs
 
 
-def plan_scripted(objects: list[str], protocol: dict, chunks: int) -> list[tuple]:
-    """The scripted rows' jobs: per object and mode, ``held_out`` and ``mass`` (not ``noise``)."""
+def plan_scripted(objects: list[str], protocol: dict, chunks: int, bar_objects=()) -> list[tuple]:
+    """The scripted rows' jobs: per object and mode, ``held_out`` and ``mass`` (not ``noise``);
+    told, on ``bar_objects``, also the bar's conditions that can change it."""
     settings = [("held_out", None, protocol["held_out"])] + [("mass", m, protocol["mass"]) for m in MASSES]
-    return [job for obj in objects for mode in SCRIPTED_MODES for kind, value, count in settings
+    told = [("condition", c, protocol["condition"]) for c in BAR_CONDITIONS if c not in SCRIPTED_SKIPS]
+    return [job for obj in objects for mode in SCRIPTED_MODES
+            for kind, value, count in settings + (told if SCRIPTED_MODES[mode] and obj in bar_objects else [])
             for job in _chunked((obj, mode, kind, value), (), count, chunks)]
 
 
@@ -270,31 +334,43 @@ def file_digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def carried_over(previous: dict | None, policies: list[Shipped], protocol_name: str) -> tuple[dict, list[str]]:
+def carried_over(previous: dict | None, policies: list[Shipped], protocol_name: str) -> tuple[dict, dict]:
     """What a previous report (its results.json) already measured under the same protocol: the
-    episodes of every policy whose file has the digest it recorded (trajectories are not kept: they
-    run again), and the objects whose scripted rows it has (they do not depend on any policy)."""
+    episodes of every policy whose file has the digest it recorded, per experiment and setting
+    (trajectories are not kept: they run again), and the scripted rows' cells it has (they depend
+    on no policy), ``{object: {mode: {kind: {value: cell}}}}``."""
     if not previous or previous.get("protocol") != protocol_name:
-        return {}, []
+        return {}, {}
     digests, episodes = previous.get("digests", {}), previous.get("episodes", {})
     done = {s.name: episodes[s.name] for s in policies
             if s.name in episodes and digests.get(s.name) == file_digest(s.path)}
-    return done, sorted(previous.get("scripted", {}))
+    return done, previous.get("scripted", {})
+
+
+def _measured(tree: dict, key: tuple) -> bool:
+    """Whether a results tree holds the cell of job key ``(*where, value)`` (never a trajectory)."""
+    *where, value = key
+    if "trajectory" in where:
+        return False
+    for k in where:
+        tree = tree.get(k, {})
+    return value_key(value) in tree
 
 
 def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=print, done: dict | None = None,
-                    scripted_done=()) -> tuple[dict, dict]:
+                    scripted_done: dict | None = None) -> tuple[dict, dict]:
     """Every experiment of `protocol` on every policy, and the scripted rows of their objects:
     ``{policy: {kind: {value: [episodes]}}}`` and ``{object: {mode: {kind: {value: [episodes]}}}}``.
-    ``done`` (`carried_over`) gives policies' episodes already measured: only their trajectories
-    run; the scripted rows of ``scripted_done`` objects are left out (the caller has them)."""
-    chunks, done = max(1, workers), done or {}
-    objects = [o for o in dict.fromkeys(s.obj for s in policies if not s.multi) if o not in scripted_done]
+    ``done`` (`carried_over`) gives policies' episodes already measured: their trajectories and the
+    settings it lacks run; the scripted cells of ``scripted_done`` are left out (the caller has them)."""
+    chunks, done, scripted_done = max(1, workers), done or {}, scripted_done or {}
+    objects = list(dict.fromkeys(s.obj for s in policies if not s.multi))
     results: dict = {s.name: json.loads(json.dumps(done.get(s.name, {}))) for s in policies}  # a deep copy
     scripted: dict = {}
-    jobs = [(_job, j, results) for j in plan(policies, protocol, chunks)
-            if j[0][0] not in done or j[0][1] == "trajectory"]
-    jobs += [(_scripted_job, j, scripted) for j in plan_scripted(objects, protocol, chunks)]
+    jobs = [(_job, j, results) for j in plan(policies, protocol, chunks) if not _measured(done, j[0])]
+    bar_objects = {s.obj for s in bar_policies(policies)}
+    jobs += [(_scripted_job, j, scripted) for j in plan_scripted(objects, protocol, chunks, bar_objects)
+             if not _measured(scripted_done, j[0])]
     episodes = sum(len(j[-2]) for _, j, _ in jobs)
     t0, finished = time.perf_counter(), 0
     with ProcessPoolExecutor(max_workers=max(1, workers), mp_context=FRESH_WORKERS) as pool:
@@ -304,7 +380,7 @@ def run_experiments(policies: list[Shipped], protocol: dict, workers: int, log=p
             leaf = futures[fut]
             for k in where:
                 leaf = leaf.setdefault(k, {})
-            leaf.setdefault("" if value is None else value if isinstance(value, str) else f"{value:g}", []).extend(eps)
+            leaf.setdefault(value_key(value), []).extend(eps)
             finished += len(eps)
             elapsed = time.perf_counter() - t0
             log(f"  {finished}/{episodes} episodes, {elapsed:.0f} s, about {elapsed / finished * (episodes - finished):.0f} s left")
@@ -335,9 +411,9 @@ def summarise(policies: list[Shipped], results: dict) -> dict:
             continue
         r = results[s.name]
         row = {"object": s.obj, "force_feedback": s.force_feedback, "proprioception": s.proprioception,
-               "seed": s.meta.get("seed"), "env_steps": s.meta.get("env_steps"),
+               "randomised": s.randomised, "seed": s.meta.get("seed"), "env_steps": s.meta.get("env_steps"),
                "wall_clock_min": s.meta.get("wall_clock_min")}
-        for kind in ("held_out", "mass", "noise"):
+        for kind in ("held_out", "mass", "noise", "condition"):
             row[kind] = {value: _rate(eps) for value, eps in r.get(kind, {}).items()}
         out[s.name] = row
     return out
@@ -359,9 +435,13 @@ def summarise_generalists(policies: list[Shipped], results: dict) -> dict:
     return out
 
 
-def summarise_scripted(scripted: dict) -> dict:
-    """The scripted rows' success rates: ``{object: {"told" | "blind": {kind: {value: cell}}}}``."""
-    return {obj: {mode: {kind: {value: _rate(eps) for value, eps in per_obj[mode][kind].items()}
-                         for kind in ("held_out", "mass") if kind in per_obj[mode]}
-                  for mode in SCRIPTED_MODES if mode in per_obj}
-            for obj, per_obj in scripted.items()}
+def summarise_scripted(scripted: dict, carried: dict | None = None) -> dict:
+    """The scripted rows' success rates, ``{object: {"told" | "blind": {kind: {value: cell}}}}``:
+    the cells ``carried`` over from a previous report (`carried_over`), with those just run."""
+    out = json.loads(json.dumps(carried or {}))
+    for obj, per_obj in scripted.items():
+        for mode, kinds in per_obj.items():
+            for kind, values in kinds.items():
+                cells = out.setdefault(obj, {}).setdefault(mode, {}).setdefault(kind, {})
+                cells.update({value: _rate(eps) for value, eps in values.items()})
+    return out

@@ -3,9 +3,9 @@
 Each figure that compares series has a ``draw_*`` function that draws on one matplotlib Axes (what
 the tests inspect) and a ``fig_*`` function that writes it as a PNG. Fig. 4 has a bar per observation
 arm (`forcegrasp.report.ARMS`, always the same colours) and the scripted approach told and blind
-as lines; Figs. 7 and 8 show the paper's arm (`TABLE_I`) beside the frozen 5x-only reference
-(``experiments/reference/5x-only.json``, when the report is given it) and, in Fig. 7, the
-scripted approach told the offset. The generalist figure sets policies of several objects beside
+as lines; Figs. 7 and 8 show the paper's arm (`TABLE_I`) of the policies trained with randomisation
+beside the same arm trained at 5x mass only (a `reference` summary, when the report has both
+families) and, in Fig. 7, the scripted approach told the offset. The generalist figure sets policies of several objects beside
 the one-object policies, per object, and zero-shot where a policy never saw the object.
 """
 
@@ -51,7 +51,8 @@ def _once(label: str, seen: set) -> str:
 
 
 def _reference_rows(reference: dict, obj: str) -> list[dict]:
-    return [r for r in reference["policies"].values() if r["object"] == obj]
+    """The reference family's rows of Table I's arm for one object (a `summarise` dict)."""
+    return arm_rows(reference, obj, TABLE_I)
 
 
 def _scripted_cell(scripted: dict, obj: str, mode: str, kind: str, value: str = "") -> dict | None:
@@ -157,8 +158,8 @@ def draw_noise(ax, summary: dict, objects: list[str], reference: dict | None) ->
     """Fig. 8: the paper's arm per object against torque noise, and the policies trained at 5x only
     (dashed, same colour, where `reference` is given)."""
     for i, o in enumerate(objects):
-        if pts := _noise_curve(arm_rows(summary, o, TABLE_I)):
-            ax.plot(*zip(*pts), marker="o", color=f"C{i}", label=o)
+        if pts := _noise_curve(arm_rows(summary, o, TABLE_I)):  # shrinking markers: overlaps stay visible
+            ax.plot(*zip(*pts), marker="osD^v<>p"[i % 8], ms=max(3, 9 - 1.5 * i), color=f"C{i}", label=o)
         if reference and (pts := _noise_curve(_reference_rows(reference, o))):
             ax.plot(*zip(*pts), marker=".", ls="--", color=f"C{i}", label=f"{o}, {REFERENCE_LABEL}")
     ax.set(xlabel="joint-torque noise std (N·m)", ylabel="success (%)", ylim=(-3, 103),

@@ -5,8 +5,10 @@ best of them (`forcegrasp experiment` freezes it at each mark; ``--mark`` picks 
 last). The shipped file is tested again on ``--episodes`` held-out placements (the ``"test"``
 stream, never used to pick) and the JSON sidecar records what `forcegrasp report` and a reader
 need: object, observation arm (force feedback and proprioception, read from the policy file),
-seed, environment steps and wall-clock to the pick, the recipe, the score. Name:
-``<object>-<ff|noff>[-cmd]-s<seed>.safetensors`` (``-cmd``: commanded proprioception). A policy of
+seed, environment steps and wall-clock to the pick, the recipe, the training conditions, the score.
+Name: ``<object>-<ff|noff>[-cmd][-5x]-s<seed>.safetensors`` (``-cmd``: commanded proprioception;
+``-5x``: trained at the paper's fixed conditions only, without the default recipe's randomised
+mass and torque noise, `forcegrasp.report.randomised`). A policy of
 several objects is named for its set (``camera+mug-ff-s0``), tested on each object, and its sidecar
 records ``objects`` and the score on each (``held_out`` is the worst object's).
 """
@@ -33,6 +35,7 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     from forcegrasp.conditions import env_kwargs
     from forcegrasp.multi_object import policy_objects
     from forcegrasp.policy_file import load_policy_file
+    from forcegrasp.report import randomised
     from forcegrasp.task import proprioception_of
 
     record = load_record(run_dir)
@@ -48,6 +51,7 @@ def ship(run_dir: Path, out_dir: Path, mark: float | None, episodes: int, worker
     meta = load_policy_file(src)[1]
     proprioception = proprioception_of(meta)
     arm = ("ff" if meta.force_feedback else "noff") + ("-cmd" if proprioception == "commanded" else "")
+    arm += "" if randomised(record["config"]["env"]) else "-5x"
     objects = policy_objects(meta)
     dst = out_dir / f"{'+'.join(objects)}-{arm}-s{record['seed']}.safetensors"
     log(f"testing {src} on {episodes} held-out placements" + (" of each object" if len(objects) > 1 else ""))
