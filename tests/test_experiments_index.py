@@ -17,4 +17,4 @@ def test_the_index_lists_every_record_and_is_up_to_date(capsys):
     for path in (ROOT / "experiments").glob("*.json"):
         assert f"| {path.name} |" in text
     assert "| n-lndemo15-camera-s0.json | critic LayerNorm + 4 demonstrations per env | fast (fixed conditions) | yes | 0 | 15 " \
-           "| camera-ff-s0 |" in text
+           "| camera-ff-5x-s0 |" in text

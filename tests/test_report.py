@@ -131,7 +131,8 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
 def test_scripted_rows_run_on_the_policies_placements():
     """Told the offset, the straight approach grasps the mug at 5x on (nearly) every held-out placement;
     blind, far fewer: on the very placements (offsets, episode seeds) the policies run."""
-    from forcegrasp.report import BAR_CONDITIONS, run_experiments, scripted_env, summarise_scripted
+    from forcegrasp.report import BAR_CONDITIONS, run_experiments, scripted_env
+    from forcegrasp.report_summary import summarise_scripted
 
     mug = next(s for s in SHIPPED if s.obj == "mug" and s.arm == TABLE_I)
     protocol = {"held_out": 8, "mass": 2, "noise": 1, "condition": 2}
@@ -247,7 +248,7 @@ def test_the_randomised_family_is_reported_beside_the_5x_only_one():
 
 
 def test_the_robustness_section_marks_each_policy_against_the_bar():
-    from forcegrasp.cli.report import misses, robustness_section
+    from forcegrasp.cli.report_bar import misses, robustness_section
 
     good = _light_row("mug", 0, True, 10)
     short = _light_row("mug", 1, True, 10)
@@ -375,11 +376,12 @@ def test_a_policy_of_several_objects_is_tested_on_each_and_zero_shot_on_the_othe
     grasp the mug) and zero-shot on the paper's objects it never saw; the section and figure show it."""
     from forcegrasp.cli.report import generalists_section
     from forcegrasp.cli.report_figures import draw_generalists, generalist_cells
-    from forcegrasp.report import run_experiments, summarise, summarise_generalists
+    from forcegrasp.report import run_experiments
+    from forcegrasp.report_summary import summarise, summarise_generalists
 
     two = _two_object_policy(tmp_path / "policies")
     assert two.multi and two.objects == ["mug", "camera"] and shipped_policies(tmp_path / "policies") == [two]
-    protocol = {"held_out": 6, "mass": 0, "noise": 0, "trajectory": 0}
+    protocol = {"held_out": 6, "mass": 0, "noise": 0, "trajectory": 0, "condition": 0}
     results, scripted = run_experiments([two], protocol, workers=2, log=lambda s: None)
     assert scripted == {} and summarise([two], results) == {}  # no one-object rows, no scripted rows
     row = summarise_generalists([two], results)[two.name]
