@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 
 from forcegrasp import docs_dir
-from forcegrasp.cli.report_figures import (fig_adaptation, fig_force_feedback, fig_generalists, fig_lighter,
-                                           fig_noise, fig_trajectories)
+from forcegrasp.cli.report_figures import (_scripted_cell as scripted_cell, fig_adaptation, fig_force_feedback,
+                                           fig_generalists, fig_lighter, fig_noise, fig_trajectories)
 from forcegrasp.cli.report_bar import CONDITION_HEADS, robustness_section
 from forcegrasp.markdown import replace_between
 from forcegrasp.report import (ARMS, PAPER, PAPER_OBJECTS, POLICIES_DIR, PROTOCOLS, SCRIPTED_MODES,
@@ -88,7 +88,7 @@ TABLE_CONDITIONS = ("1x_3cm", "0.5x_3cm", "noise_0.5", "jitter_3cm")  # the bar'
 
 
 def _told(scripted: dict, obj: str, kind: str, value: str = "") -> str:
-    cell = scripted.get(obj, {}).get("told", {}).get(kind, {}).get(value)
+    cell = scripted_cell(scripted, obj, "told", kind, value)
     return "–" if cell is None else f"{cell['rate']:.0%}"
 
 
