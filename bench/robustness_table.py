@@ -32,6 +32,9 @@ def randomisation(record: dict) -> str:
     if env.get("torque_noise_range"):
         low, high = env["torque_noise_range"]
         parts.append(f"noise {low:g}–{high:g} N·m")
+    if env.get("jitter_range"):
+        low, high = env["jitter_range"]
+        parts.append(f"jitter ±{low * 100:g}–{high * 100:g} cm")
     if env.get("torque_filter", 1.0) < 1:
         parts.append(f"torque filter {env['torque_filter']:g}")
     if record.get("effective", {}).get("sac", {}).get("obs_norm"):

@@ -1,4 +1,4 @@
-"""Training-time randomisation (issue 45): per-episode mass and torque-noise draws stay in their
+"""Training-time randomisation (issue 45): per-episode mass, torque-noise and jitter draws stay in their
 ranges, reach the asymmetric critic's privileged state, are recorded in policy files, and an env
 rebuilt from a policy file reproduces the conditions it was trained under."""
 
@@ -31,6 +31,34 @@ def test_draws_stay_in_their_ranges_and_reach_the_privileged_state():
     first = env.episode_mass_scale, env.episode_noise_std
     env.reset(seed=7)
     assert (env.episode_mass_scale, env.episode_noise_std) == first  # a placement's seed fixes its draws
+
+
+def test_a_jitter_range_widens_the_placement_square_per_episode_and_tests_keep_the_fixed_one():
+    env = FunctionalGraspEnv("mug", jitter_range=(0.02, 0.04))
+    widths, offsets = [], []
+    for seed in range(300):
+        _, info = env.reset(seed=seed)
+        widths.append(env.episode_jitter)
+        offsets.append(info["offset"])
+        assert np.all(np.abs(info["offset"]) <= env.episode_jitter)
+        assert env.privileged_state()[0:2] == pytest.approx(100.0 * info["offset"])  # the critic sees the draw
+    widths, offsets = np.array(widths), np.abs(np.array(offsets)).max(axis=1)
+    assert widths.min() >= 0.02 and widths.max() <= 0.04 and abs(widths.mean() - 0.03) < 0.003
+    assert np.mean(offsets > 0.02) > 0.15  # placements beyond the fixed ±2 cm square are trained on
+    env.reset(seed=7)
+    first = env.episode_jitter, env.offset.copy()
+    env.reset(seed=7)
+    assert env.episode_jitter == first[0] and np.array_equal(env.offset, first[1])
+    # An explicit placement (every test) draws no width; a fixed jitter turns the recorded range off.
+    env.reset(seed=8, options={"offset": (0.0, 0.0)})
+    assert env.episode_jitter == first[0]
+    config = load_config(env={}, overrides=["env.jitter_range=[0.02, 0.04]"])
+    meta = policy_metadata(config, (16, 16))
+    assert meta.extra["training_conditions"]["jitter_range"] == [0.02, 0.04]
+    assert FunctionalGraspEnv.for_policy(meta).jitter_range == (0.02, 0.04)
+    assert FunctionalGraspEnv.for_policy(meta, jitter=0.03).jitter_range is None
+    with pytest.raises(ConfigError, match="jitter_range"):
+        load_config(env={}, overrides=["env.jitter_range=[0.04, 0.02]"])
 
 
 def test_a_drawn_mass_is_the_mass_an_env_built_at_it_has():

@@ -35,7 +35,7 @@ CONDITIONS: dict[str, dict] = {
 #: The mix a robust policy is selected and tested on: every experiment of issue-level interest.
 ROBUST_MIX = ("5x", "1x_3cm", "0.5x_3cm", "noise_0.5", "jitter_3cm")
 #: Every condition keyword an env takes from a test condition.
-_FIXED = {"mass_scale_range": None, "torque_noise_range": None}
+_FIXED = {"mass_scale_range": None, "torque_noise_range": None, "jitter_range": None}
 
 
 def check_conditions(names: Iterable[str], what: str = "conditions") -> list[str]:

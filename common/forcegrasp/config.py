@@ -70,6 +70,8 @@ class EnvConfig:
                                                    "(empty: mass_scale in every episode, as the paper trains)")
     torque_noise_range: list[float] = _f([0.0, 1.0], "per-episode torque noise sigma drawn uniformly from [low, high] "
                                                      "N*m (empty: torque_noise_std in every episode, as the paper trains)")
+    jitter_range: list[float] = _f([], "per-episode half-width of the placement square drawn uniformly from [low, high] m, "
+                                       "then the offset within it (empty: jitter in every episode; tests use jitter)")
     curriculum_success: float = _f(0.0, "open the randomisation ranges in curriculum_stages steps from the fixed values, "
                                         "each once an actor's last curriculum_window policy episodes succeeded this "
                                         "often (forcegrasp.curriculum; 0: the full ranges from the first episode)", min=0.0)
@@ -344,15 +346,15 @@ def _check_cross_fields(config: Config) -> None:
             # object and are restarted forever says less than one line.
             raise ConfigError(f"env.object{'s' if config.env.objects else ''}: unknown object {name!r}; valid "
                               f"objects: {', '.join(list_objects())}")
-    for key, low in (("mass_scale_range", 0.0), ("torque_noise_range", None)):
+    for key, low in (("mass_scale_range", 0.0), ("torque_noise_range", None), ("jitter_range", None)):
         span = getattr(config.env, key)
         if span and (len(span) != 2 or span[0] > span[1] or span[0] < 0 or (low is not None and span[0] <= low)):
             raise ConfigError(f"env.{key} = {span!r} must be empty or [low, high] with "
                               f"{'0 < low' if low is not None else '0 <= low'} <= high")
     if config.env.curriculum_success > 1 or (config.env.curriculum_success and not (
-            config.env.mass_scale_range or config.env.torque_noise_range)):
+            config.env.mass_scale_range or config.env.torque_noise_range or config.env.jitter_range)):
         raise ConfigError(f"env.curriculum_success = {config.env.curriculum_success!r} must be in [0, 1] and needs "
-                          "env.mass_scale_range or env.torque_noise_range to open")
+                          "env.mass_scale_range, env.torque_noise_range or env.jitter_range to open")
     from forcegrasp.conditions import check_conditions
     from forcegrasp.recipes import sac_config
 

@@ -3,7 +3,7 @@
 Torque noise drawn from the first episode stalls learning (a policy that has never found the grasp
 cannot yet learn to ignore a noisy sensor), so an actor can start every env at its fixed training
 conditions (`env.mass_scale`, `env.torque_noise_std`: level 0) and open the randomisation ranges
-(`env.mass_scale_range`, `env.torque_noise_range`) one step at a time, each time its last
+(`env.mass_scale_range`, `env.torque_noise_range`, `env.jitter_range`) one step at a time, each time its last
 ``window`` policy episodes succeeded at least ``threshold`` of the time (the gate of automatic
 domain randomisation, OpenAI 2019, reduced to one level for all ranges). The level never falls:
 a run ends trained on the full ranges if it ever copes with them. Each actor keeps its own level;

@@ -91,6 +91,7 @@ class FunctionalGraspEnv(gym.Env):
         proprioception: str = "measured",
         mass_scale_range: tuple[float, float] | None = None,
         torque_noise_range: tuple[float, float] | None = None,
+        jitter_range: tuple[float, float] | None = None,
         label: GraspLabel | None = None,
         render_mode: str | None = None,
     ):
@@ -101,6 +102,7 @@ class FunctionalGraspEnv(gym.Env):
             raise ValueError(f"jitter and torque_noise_std must be >= 0, got {jitter!r}, {torque_noise_std!r}")
         self.mass_scale_range = checked_range("mass_scale_range", mass_scale_range, positive=True)
         self.torque_noise_range = checked_range("torque_noise_range", torque_noise_range, positive=False)
+        self.jitter_range = checked_range("jitter_range", jitter_range, positive=False)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None")
         self.object_spec = load_object(object_name)
@@ -122,6 +124,7 @@ class FunctionalGraspEnv(gym.Env):
         self.ix = SceneIndex.of(self.model)
         # This episode's conditions: the fixed settings, or per-episode draws from the ranges.
         self.episode_mass_scale, self.episode_noise_std = self.mass_scale, self.torque_noise_std
+        self.episode_jitter = self.jitter
         self.randomisation_level = 1.0  # how much of the ranges is open (forcegrasp.curriculum); 1: all
         body = self.ix.object_body
         self._unit_mass = self.model.body_mass[body] / self.mass_scale
@@ -168,11 +171,12 @@ class FunctionalGraspEnv(gym.Env):
         """The env a policy file was trained for: its object, observation (force feedback, torque
         history, proprioception), action step sizes and training conditions (mass, noise, jitter and
         their per-episode ranges; ``meta`` is its PolicyMetadata). ``kwargs`` set everything else and
-        override what the file records; a fixed ``mass_scale`` or ``torque_noise_std`` turns the
-        recorded range off (a test condition never randomises). ``object_name`` picks the object of a
+        override what the file records; a fixed ``mass_scale``, ``torque_noise_std`` or ``jitter`` turns
+        the recorded range off (a test condition never randomises). ``object_name`` picks the object of a
         multi-object policy (whose file names none)."""
         recorded = dict(meta.extra.get("training_conditions") or {})
-        for fixed, span in (("mass_scale", "mass_scale_range"), ("torque_noise_std", "torque_noise_range")):
+        for fixed, span in (("mass_scale", "mass_scale_range"), ("torque_noise_std", "torque_noise_range"),
+                            ("jitter", "jitter_range")):
             if fixed in kwargs or not recorded.get(span):
                 recorded.pop(span, None)
         if not (object_name or meta.object_name):
@@ -185,14 +189,18 @@ class FunctionalGraspEnv(gym.Env):
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         """Start at the pre-grasp with the object shifted by ``options["offset"]`` (dx, dy) in m, or
         by an offset drawn uniformly from the part of the ±jitter square where the pre-grasp hand
-        does not overlap the object (near some edges it would start inside it; see `overlap`).
+        does not overlap the object (near some edges it would start inside it; see `overlap`); with
+        ``jitter_range`` the square's half-width is drawn per episode first.
         An explicit offset with an overlap is refused with ValueError.
         """
         super().reset(seed=seed)
         d = self.data
         offset = (options or {}).get("offset")
         if offset is None:
-            offset = draw_clear_offset(self.np_random, self.jitter, self.is_clear, self.object_spec.name)
+            if self.jitter_range is not None:  # drawn before the offset; the offset is privileged state
+                self.episode_jitter = float(self.np_random.uniform(*widened(self.jitter, self.jitter_range,
+                                                                            self.randomisation_level)))
+            offset = draw_clear_offset(self.np_random, self.episode_jitter, self.is_clear, self.object_spec.name)
         else:
             offset = np.asarray(offset, dtype=float)
             if offset.shape != (2,) or not np.all(np.isfinite(offset)):

@@ -92,7 +92,7 @@ PAPER = {
 def randomised(env: dict) -> bool:
     """Whether a run's ``[env]`` trained under randomised mass or torque noise (its ranges), not only
     at the paper's fixed conditions: which family a shipped policy belongs to."""
-    return bool(env.get("mass_scale_range") or env.get("torque_noise_range"))
+    return bool(env.get("mass_scale_range") or env.get("torque_noise_range") or env.get("jitter_range"))
 
 
 @dataclass(frozen=True)
@@ -233,7 +233,7 @@ def _job(args) -> tuple[tuple, list[dict]]:
 
     policy = Policy.load(path)
     # No randomisation whatever a policy trained under (a policy file may record training ranges).
-    env = FunctionalGraspEnv.for_policy(policy.metadata, mass_scale_range=None, torque_noise_range=None,
+    env = FunctionalGraspEnv.for_policy(policy.metadata, mass_scale_range=None, torque_noise_range=None, jitter_range=None,
                                         **conditions(kind, value))
     if kind == "trajectory":
         return key, [_trajectory(env, policy, FIG3_OFFSETS[i], seed=1000 + i) for i in indices]

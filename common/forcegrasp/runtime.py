@@ -77,6 +77,7 @@ def make_env(config: Config, object_name: str | None = None, **overrides):
         proprioception=e.proprioception,
         mass_scale_range=e.mass_scale_range or None,
         torque_noise_range=e.torque_noise_range or None,
+        jitter_range=e.jitter_range or None,
         **e.action_steps(),
     )
     kwargs.update(overrides)
@@ -106,6 +107,7 @@ def training_conditions(config: Config) -> dict:
     e = config.env
     return {"mass_scale": e.mass_scale, "torque_noise_std": e.torque_noise_std, "jitter": e.jitter,
             "mass_scale_range": list(e.mass_scale_range), "torque_noise_range": list(e.torque_noise_range),
+            **({"jitter_range": list(e.jitter_range)} if e.jitter_range else {}),
             **({"torque_filter": e.torque_filter} if e.torque_filter < 1 else {})}
 
 

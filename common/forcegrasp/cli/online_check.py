@@ -68,7 +68,7 @@ def online_successes(policy_path: Path, episodes: int, envs: int = 8, seed: int 
     objects = policy_objects(meta)
     # the conditions the policy trained on, as `FunctionalGraspEnv.for_policy` rebuilds them offline
     # (a file without the record trained at the paper's fixed conditions)
-    trained = {"mass_scale_range": [], "torque_noise_range": [], **(meta.extra.get("training_conditions") or {})}
+    trained = {"mass_scale_range": [], "torque_noise_range": [], "jitter_range": [], **(meta.extra.get("training_conditions") or {})}
     port = free_tcp_port()
     run = "online-check"
     config = load_config(overrides=[

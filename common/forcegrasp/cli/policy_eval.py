@@ -95,7 +95,7 @@ def evaluate_settings(policy_path: Path, episodes: int, seed: int, fixed: dict, 
                "failures": dict(Counter(r.failure for r in results if not r.success)),
                # a policy trained under randomisation is tested under it unless a setting fixes it
                "env": {k: (list(v) if isinstance(v, tuple) else v) for k in (
-                   "mass_scale", "torque_noise_std", "mass_scale_range", "torque_noise_range", "jitter",
+                   "mass_scale", "torque_noise_std", "mass_scale_range", "torque_noise_range", "jitter", "jitter_range",
                    "object_tolerance") for v in [getattr(env, k)]},
                "seconds": round(time.perf_counter() - t0, 1)}
         rows.append(row)

@@ -189,6 +189,8 @@ def _trained_under(env: dict) -> str:
         ranges.append(f"mass {mass[0]:g}-{mass[1]:g}x")
     if noise := env.get("torque_noise_range"):
         ranges.append(f"torque noise {noise[0]:g}-{noise[1]:g} N·m")
+    if jitter := env.get("jitter_range"):
+        ranges.append(f"jitter ±{jitter[0] * 100:g}-{jitter[1] * 100:g} cm")
     return ", ".join(ranges) if ranges else f"{env.get('mass_scale', 5.0):g}x mass"
 
 
