@@ -22,7 +22,7 @@ EXPERIMENTS = ROOT / "experiments"
 
 #: The table's baseline: the default recipe at the paper's fixed conditions, without observation
 #: normalisation (what joined the recipe with the randomisation).
-FIXED = ("env.mass_scale_range=[]", "env.torque_noise_range=[]", "evaluator.conditions=[]", "learner.sac.obs_norm=false")
+FIXED = ("env.mass_scale_range=[]", "env.torque_noise_range=[]", "env.jitter_range=[]", "evaluator.conditions=[]", "learner.sac.obs_norm=false")
 
 
 def record(seed, marks, *overrides, obj="camera"):

@@ -101,7 +101,7 @@ def test_bad_curriculum_settings_are_configuration_errors(bad, message):
 def test_a_curriculum_without_a_range_to_open_is_a_configuration_error():
     with pytest.raises(ConfigError, match="needs env.mass_scale_range"):
         load_config(env={}, overrides=["env.curriculum_success=0.7", "env.mass_scale_range=[]",
-                                       "env.torque_noise_range=[]"])
+                                       "env.torque_noise_range=[]", "env.jitter_range=[]"])
 
 
 def test_the_learner_reports_how_far_the_recent_draws_reach(tmp_path):

@@ -301,7 +301,7 @@ def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
     assert meta["recipe"]["sac"]["privileged_critic"] is True  # the recipe's settings, not only the overrides
     assert meta["recipe"]["sac"]["critic_layer_norm"] is True
     fixed = load_config(env={}, overrides=[f"env.object={src.obj}", "run.name=r", "env.mass_scale_range=[]",
-                                           "env.torque_noise_range=[]"]).to_dict()
+                                           "env.torque_noise_range=[]", "env.jitter_range=[]"]).to_dict()
     (run / "experiment.json").write_text(json.dumps({**record, "config": fixed}))
     assert ship_main([str(run), "--out", str(out), "--episodes", "1", "--workers", "1"]) == 0
     five = f"{src.obj}-{'ff' if src.force_feedback else 'noff'}-5x-s7"  # the paper's fixed conditions only

@@ -65,13 +65,14 @@ class EnvConfig:
     torque_noise_std: float = _f(0.0, "Gaussian noise on observed torques, N*m", min=0.0)
     # Domain randomisation, on by default (the robust recipe, docs/recipe.md): drawn afresh every
     # training episode, recorded in every policy file and seen by the asymmetric critic
-    # (task.PRIVILEGED_LAYOUT "domain"), never by the policy. Both empty: the paper's fixed conditions.
+    # (task.PRIVILEGED_LAYOUT "domain" and the offset), never by the policy. All three empty: the
+    # paper's fixed conditions.
     mass_scale_range: list[float] = _f([0.5, 5.0], "per-episode mass multiplier drawn log-uniformly from [low, high] "
                                                    "(empty: mass_scale in every episode, as the paper trains)")
     torque_noise_range: list[float] = _f([0.0, 1.0], "per-episode torque noise sigma drawn uniformly from [low, high] "
                                                      "N*m (empty: torque_noise_std in every episode, as the paper trains)")
-    jitter_range: list[float] = _f([], "per-episode half-width of the placement square drawn uniformly from [low, high] m, "
-                                       "then the offset within it (empty: jitter in every episode; tests use jitter)")
+    jitter_range: list[float] = _f([0.02, 0.04], "per-episode half-width of the placement square drawn uniformly from [low, high] m, "
+                                       "then the offset within it (empty: jitter in every episode, as the paper trains; tests use jitter)")
     curriculum_success: float = _f(0.0, "open the randomisation ranges in curriculum_stages steps from the fixed values, "
                                         "each once an actor's last curriculum_window policy episodes succeeded this "
                                         "often (forcegrasp.curriculum; 0: the full ranges from the first episode)", min=0.0)
