@@ -2,8 +2,8 @@
 
 A shipped policy is a policy file plus a JSON sidecar (`ship`): object, observation arm (force
 feedback and proprioception, `ARMS`), seed, environment steps, wall-clock, recipe, and its score on
-100 held-out placements. Policies come in two families: trained under randomised mass and torque
-noise (the default recipe, `Shipped.randomised`; named ``<object>-<arm>-s<seed>``) and trained at
+100 held-out placements. Policies come in two families: trained under randomised mass, torque
+noise and placement width (the default recipe, `Shipped.randomised`; named ``<object>-<arm>-s<seed>``) and trained at
 the paper's fixed conditions (5x mass, no noise; ``<object>-<arm>-5x-s<seed>``), the family the
 observation-arm ablation and the reference rows of Figs. 7 and 8 come from. The experiments
 (`PROTOCOLS`), each over the ``"test"`` placement stream that never picked a checkpoint:
@@ -90,7 +90,7 @@ PAPER = {
 
 
 def randomised(env: dict) -> bool:
-    """Whether a run's ``[env]`` trained under randomised mass or torque noise (its ranges), not only
+    """Whether a run's ``[env]`` trained under randomised mass, torque noise or jitter (its ranges), not only
     at the paper's fixed conditions: which family a shipped policy belongs to."""
     return bool(env.get("mass_scale_range") or env.get("torque_noise_range") or env.get("jitter_range"))
 

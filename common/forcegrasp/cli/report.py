@@ -250,7 +250,7 @@ def write_page(policies, summary: dict, figures: dict, protocol_name: str, secon
         "). Placements are the `test` stream (seed 0), never used to pick a "
         "checkpoint; actions deterministic; 95 % Wilson intervals, seeds pooled. The table shows the policies of the "
         "paper's arm (joint torques and measured proprioception) trained with the default recipe, under randomised "
-        "mass and torque noise; the scripted approach told the offset runs on the same placements (trained / 1x / "
+        "mass, torque noise and (where the policies table says so) placement width; the scripted approach told the offset runs on the same placements (trained / 1x / "
         "0.5x / noise, which cannot change it / ±3 cm).",
         "",
         *results_table(summary, objects, scripted or {}),

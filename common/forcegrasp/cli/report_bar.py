@@ -45,9 +45,9 @@ def robustness_section(summary: dict, objects: list[str], scripted: dict) -> lis
              f"each other condition: {n} in the full protocol) under each test condition of `forcegrasp.conditions`, "
              "deterministic actions, 95 % Wilson intervals. The bar: at least 95 % under the trained conditions and "
              "90 % at 1x and 0.5x mass with the paper's 3 cm tolerance, under 0.5 N·m of torque noise and at ±3 cm "
-             "(the 1 cm figures have none); *italics* miss it. `trained under` says whether the policy saw "
-             "randomised mass and torque noise (the default recipe) or only the paper's 5x mass; Figs. 7 and 8 "
-             "set the two families side by side.", "",
+             "(the 1 cm figures have none); *italics* miss it. `trained under` says whether the policy trained "
+             "under randomised conditions (the default recipe; the policies table above names the ranges) or only "
+             "at the paper's 5x mass; Figs. 7 and 8 set the two families side by side.", "",
              "| policy | trained under | minutes | " + " | ".join(heads) + " |", "|---|---|---:|" + "---:|" * len(heads)]
     ordered = sorted(rows.items(), key=lambda kv: (not kv[1].get("randomised"), objects.index(kv[1]["object"])
                                                    if kv[1]["object"] in objects else len(objects), kv[0]))

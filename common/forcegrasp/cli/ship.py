@@ -8,7 +8,7 @@ need: object, observation arm (force feedback and proprioception, read from the 
 seed, environment steps and wall-clock to the pick, the recipe, the training conditions, the score.
 Name: ``<object>-<ff|noff>[-cmd][-5x]-s<seed>.safetensors`` (``-cmd``: commanded proprioception;
 ``-5x``: trained at the paper's fixed conditions only, without the default recipe's randomised
-mass and torque noise, `forcegrasp.report.randomised`). A policy of
+mass, torque noise and placement width, `forcegrasp.report.randomised`). A policy of
 several objects is named for its set (``camera+mug-ff-s0``), tested on each object, and its sidecar
 records ``objects`` and the score on each (``held_out`` is the worst object's).
 """
