@@ -50,7 +50,7 @@ import numpy as np
 from forcegrasp.labels import GraspLabel, load_label
 from forcegrasp.objects import load_object
 from forcegrasp.reward import Outcome, RewardWeights, evaluate_state, observed_h  # noqa: F401  (part of this module's API)
-from forcegrasp.sampling import draw_clear_offset, span as checked_range, widened  # noqa: F401  (draw_clear_offset: API)
+from forcegrasp.sampling import draw, draw_clear_offset, span as checked_range
 from forcegrasp.scene import SceneIndex, block_view, build_model, resting_height, slide_axes
 from forcegrasp.task import (  # noqa: F401  (the layouts are part of this module's documented API)
     ACTION_LAYOUT, ACTION_STEPS, COMMANDED_SLOTS, DOMAIN, OBS_LAYOUT, PRIV_DIM, PRIVILEGED_LAYOUT, action_scale,
@@ -123,8 +123,7 @@ class FunctionalGraspEnv(gym.Env):
         self.data = mujoco.MjData(self.model)
         self.ix = SceneIndex.of(self.model)
         # This episode's conditions: the fixed settings, or per-episode draws from the ranges.
-        self.episode_mass_scale, self.episode_noise_std = self.mass_scale, self.torque_noise_std
-        self.episode_jitter = self.jitter
+        self.episode_mass_scale, self.episode_noise_std, self.episode_jitter = self.mass_scale, self.torque_noise_std, self.jitter
         self.randomisation_level = 1.0  # how much of the ranges is open (forcegrasp.curriculum); 1: all
         body = self.ix.object_body
         self._unit_mass = self.model.body_mass[body] / self.mass_scale
@@ -190,16 +189,14 @@ class FunctionalGraspEnv(gym.Env):
         """Start at the pre-grasp with the object shifted by ``options["offset"]`` (dx, dy) in m, or
         by an offset drawn uniformly from the part of the ±jitter square where the pre-grasp hand
         does not overlap the object (near some edges it would start inside it; see `overlap`); with
-        ``jitter_range`` the square's half-width is drawn per episode first.
+        ``jitter_range`` the square's half-width is drawn first (the critic sees the offset).
         An explicit offset with an overlap is refused with ValueError.
         """
         super().reset(seed=seed)
         d = self.data
         offset = (options or {}).get("offset")
         if offset is None:
-            if self.jitter_range is not None:  # drawn before the offset; the offset is privileged state
-                self.episode_jitter = float(self.np_random.uniform(*widened(self.jitter, self.jitter_range,
-                                                                            self.randomisation_level)))
+            self.episode_jitter = draw(self.np_random, self.jitter, self.jitter_range, self.randomisation_level)
             offset = draw_clear_offset(self.np_random, self.episode_jitter, self.is_clear, self.object_spec.name)
         else:
             offset = np.asarray(offset, dtype=float)
@@ -290,12 +287,9 @@ class FunctionalGraspEnv(gym.Env):
         their ranges ``randomisation_level`` opens (`widened`); a uniform density scales mass and
         inertia alike, and mj_setConst refreshes what depends on them."""
         level = self.randomisation_level
-        if self.torque_noise_range is not None:
-            self.episode_noise_std = float(self.np_random.uniform(*widened(self.torque_noise_std,
-                                                                          self.torque_noise_range, level)))
+        self.episode_noise_std = draw(self.np_random, self.torque_noise_std, self.torque_noise_range, level)
         if self.mass_scale_range is not None:
-            low, high = np.log(widened(self.mass_scale, self.mass_scale_range, level, log=True))
-            self.set_mass_scale(float(np.exp(self.np_random.uniform(low, high))))
+            self.set_mass_scale(draw(self.np_random, self.mass_scale, self.mass_scale_range, level, log=True))
 
     def set_mass_scale(self, scale: float) -> None:
         """Make the object ``scale`` times its nominal mass from the next reset on."""

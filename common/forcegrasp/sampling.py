@@ -31,6 +31,16 @@ def draw_clear_offset(rng: np.random.Generator, jitter: float, is_clear=None, wh
                        "in a row; relabel the pre-grasp")
 
 
+def draw(rng: np.random.Generator, nominal: float, full: tuple[float, float] | None, level: float, *,
+         log: bool = False) -> float:
+    """This episode's value: ``nominal`` without a range (no draw), else uniform (log-uniform with
+    ``log``) in the part of the range ``level`` has opened (`widened`)."""
+    if full is None:
+        return float(nominal)
+    low, high = widened(nominal, full, level, log=log)
+    return float(np.exp(rng.uniform(np.log(low), np.log(high)))) if log else float(rng.uniform(low, high))
+
+
 def widened(nominal: float, full: tuple[float, float], level: float, *, log: bool = False) -> tuple[float, float]:
     """The part of a randomisation range a curriculum has opened: each bound moves from ``nominal``
     (level 0: the fixed training value) to the full range's bound (level 1), in log space for a
