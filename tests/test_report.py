@@ -6,6 +6,7 @@ randomised family beside the 5x-only one."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -54,8 +55,6 @@ def test_each_shipped_policys_arm_comes_from_its_file_and_sidecar():
 
 
 def test_a_sidecar_without_proprioception_is_refused(tmp_path, capsys):
-    import shutil
-
     from forcegrasp.cli.report import main as report_main
 
     src = SHIPPED[0]
@@ -95,6 +94,16 @@ def test_shipped_policy_fits_its_env_and_succeeds_as_claimed(shipped):
         assert agree((k, n), claim), f"{shipped.name}: {k}/{n} here, {claim[0]}/{claim[1]} in {source}"
 
 
+def quick_sample() -> list[Shipped]:
+    """The policies the quick report re-runs: every arm and both training families on one object,
+    plus a policy of a second object. Each shipped policy's own claim is checked one by one above;
+    this sample checks the report end to end in a time that does not grow with each policy shipped."""
+    sample = [s for s in SHIPPED if s.obj == "mug" and s.name.endswith("-s0")]
+    sample += [s for s in SHIPPED if s.name == "camera-ff-s0"]
+    assert {s.arm for s in sample} == set(ARMS) and any("-5x-" not in s.name for s in sample), [s.name for s in sample]
+    return sample
+
+
 def test_quick_report_agrees_with_the_committed_results(tmp_path):
     from forcegrasp.report import PROTOCOLS
 
@@ -102,21 +111,27 @@ def test_quick_report_agrees_with_the_committed_results(tmp_path):
     assert full["protocol"] == "full"
     assert set(full["policies"]) == {s.name for s in SHIPPED if not s.multi}, "docs/results.md is older than assets/policies/"
     assert set(full.get("generalists", {})) == {s.name for s in SHIPPED if s.multi}
+    sample, policies = quick_sample(), tmp_path / "policies"
+    policies.mkdir()
+    for s in sample:
+        shutil.copyfile(s.path, policies / s.path.name)
+        shutil.copyfile(s.path.with_suffix(".json"), policies / f"{s.name}.json")
     out = tmp_path / "docs"
-    proc = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "report", "--quick", "--out", str(out),
-                           "--no-strips"], capture_output=True, text=True, timeout=900)
+    proc = subprocess.run([sys.executable, "-m", "forcegrasp.cli", "report", "--quick", "--policies", str(policies),
+                           "--out", str(out), "--no-strips"], capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     quick = json.loads((out / "results.json").read_text())
     assert (out / "results.md").read_text().count("| ") > 10
     for png in ("force-feedback", "adaptation", "lighter", "torque-noise", "trajectories"):
         assert (out / "results" / f"{png}.png").stat().st_size > 5000
+    assert set(quick["policies"]) == {s.name for s in sample}
     for name, row in quick["policies"].items():
         for kind in ("held_out", "mass", "noise", "condition"):
             for value, cell in row[kind].items():
                 claimed = full["policies"][name][kind][value]
                 assert agree((cell["successes"], cell["episodes"]), (claimed["successes"], claimed["episodes"])), \
                     (name, kind, value, cell, claimed)
-    assert set(quick["scripted"]) == {s.obj for s in SHIPPED if not s.multi}
+    assert set(quick["scripted"]) == {s.obj for s in sample}
     for obj, modes in quick["scripted"].items():
         assert set(modes) == {"told", "blind"}
         for mode, kinds in modes.items():
@@ -270,8 +285,6 @@ def test_the_robustness_section_marks_each_policy_against_the_bar():
 
 
 def test_ship_copies_the_marked_pick_with_its_record(tmp_path):
-    import shutil
-
     from forcegrasp.cli.ship import main as ship_main
     from forcegrasp.config import load_config
 
@@ -438,8 +451,6 @@ def test_a_report_carries_over_the_episodes_of_unchanged_policy_files_only(tmp_p
     """``--reuse``: a policy whose file is byte-for-byte what the previous report tested keeps its
     episodes (only its trajectories and the settings it lacks run again); a changed file or another
     protocol runs afresh; the scripted cells it has are not run again."""
-    import shutil
-
     from forcegrasp.report import carried_over, file_digest, run_experiments
 
     folder = tmp_path / "policies"
