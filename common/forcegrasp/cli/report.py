@@ -128,6 +128,17 @@ def arms_section(probe: Path) -> list[str]:
     for r in rows:
         lines.append(f"| {r['object']} | {r['arm']} | {r['obs_dim']} | {r['torques']:.2f} | {r['hand_contact']:.2f} | "
                      f"{r['fingertip_contacts']:.2f} | {r['object_offset']:.2f} |")
+    blind = [r for r in rows if r["arm"] == "commanded only"]
+    if blind:
+        def span(key: str) -> str:
+            values = [r[key] for r in blind]
+            return f"{min(values):.2f} to {max(values):.2f}"
+        lines += ["", f"Commanded only recovers nothing of the object offset (R² {span('object_offset')}). Its contact "
+                  f"R² ({span('hand_contact')} for the hand, {span('fingertip_contacts')} for the fingertips) is what "
+                  "the hand's own commanded motion predicts: the actions decide when the fingers close on wherever "
+                  "the object is, and the observations are the same for every offset under the same actions "
+                  "(`tests/test_proprioception.py`), so this arm can know when it is likely touching, never where "
+                  "the object is."]
     return lines + [""]
 
 
