@@ -28,6 +28,16 @@ def test_status_line_fits_100_columns_and_names_its_figures():
     assert "waiting for the learner" in status_line({}, 3.0)
 
 
+def test_a_long_line_without_a_curriculum_drops_its_optional_figures_and_still_prints():
+    """Several objects' worst online success lengthens the line; with no curriculum there is no
+    ranges figure to drop, and the line must still come out within its width."""
+    stats = {**BIG, "learner": {**BIG["learner"], "objects": {
+        "spray_bottle": {"success_rate": 0.5}, "power_drill": {"success_rate": 0.4}}}}
+    line = status_line(stats, 1200.0, width=80)
+    assert len(line) <= 80 and "updates" not in line and "actors" not in line
+    assert line.startswith("20.0 min") and "worst power_drill 40%" in line
+
+
 def test_status_line_shows_how_much_of_the_randomisation_ranges_the_actors_have_opened():
     stats = {"learner": {"ingested": 5000, "updates": 1200, "success_rate": 0.5},
              "actor-0": {"steps_per_s": 100.0, "curriculum_level": 0.2},

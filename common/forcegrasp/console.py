@@ -53,7 +53,7 @@ def status_line(stats: dict, elapsed_s: float, width: int = WIDTH) -> str:
     for optional in ("actors", "updates", "ranges"):
         if len(" | ".join(parts.values())) <= width:
             break
-        del parts[optional]
+        parts.pop(optional, None)
     return " | ".join(parts.values())[:width]
 
 
