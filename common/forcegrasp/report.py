@@ -3,8 +3,8 @@
 A shipped policy is a policy file plus a JSON sidecar (`ship`): object, observation arm (force
 feedback and proprioception, `ARMS`), seed, environment steps, wall-clock, recipe, and its score on
 100 held-out placements. Policies come in two families: trained under randomised mass, torque
-noise and placement width (the default recipe, `Shipped.randomised`; named ``<object>-<arm>-s<seed>``) and trained at
-the paper's fixed conditions (5x mass, no noise; ``<object>-<arm>-5x-s<seed>``), the family the
+noise and placement width (the default recipe, `Shipped.randomised`; named
+``<object>-<arm>-s<seed>``) and trained at the paper's fixed conditions (5x mass, no noise; ``<object>-<arm>-5x-s<seed>``), the family the
 observation-arm ablation and the reference rows of Figs. 7 and 8 come from. The experiments
 (`PROTOCOLS`), each over the ``"test"`` placement stream that never picked a checkpoint:
 
