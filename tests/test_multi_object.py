@@ -14,7 +14,7 @@ import yaml
 
 from forcegrasp.config import ConfigError, load_config
 from forcegrasp.evaluation import EvalResult
-from forcegrasp.multi_object import actor_index, aggregate, assign_objects, object_table, policy_objects, run_objects
+from forcegrasp.multi_object import AdaptiveObjectSampler, actor_index, aggregate, assign_objects, object_table, policy_objects, run_objects
 from forcegrasp.policy_file import actor_param_shapes, load_policy_bytes, policy_to_bytes
 from forcegrasp.protocol import ProtocolError, TransitionBatch, decode_transitions, encode_transitions
 from forcegrasp.runtime import policy_metadata
@@ -104,6 +104,57 @@ def test_demonstrations_follow_each_envs_object():
     assert actor._demos_left == [demo_episodes("camera", -1), demo_episodes("mug", -1)]
     assert all(d.env is env for d, env in zip(actor._demo, actor.envs))
     actor.close()
+
+
+def test_adaptive_sampling_sends_episodes_to_the_objects_that_fail():
+    sampler = AdaptiveObjectSampler(["mug", "camera", "drill"], np.random.default_rng(0), window=4, mix=0.5)
+    assert np.allclose(sampler.probabilities(), 1 / 3)  # nothing seen: every object fails alike
+    for ok in (False, False, True, True, True, True):  # the window keeps the last 4: camera solved
+        sampler.record("camera", ok)
+    for ok in (True, False, False, False):
+        sampler.record("mug", ok)  # 1 of 4: fails 3/4
+    sampler.record("drill", True), sampler.record("drill", False)  # fails 1/2
+    # p = 0.5 / 3 + 0.5 * fail / sum(fail), fail = (0.75, 0, 0.5)
+    assert np.allclose(sampler.probabilities(), [1 / 6 + 0.5 * 0.6, 1 / 6, 1 / 6 + 0.5 * 0.4])
+    draws = [sampler.draw() for _ in range(3000)]
+    assert abs(draws.count("mug") / 3000 - 0.4667) < 0.03 and abs(draws.count("camera") / 3000 - 1 / 6) < 0.03
+    for name in ("mug", "drill"):
+        for _ in range(4):
+            sampler.record(name, True)
+    assert np.allclose(sampler.probabilities(), 1 / 3)  # all solved: uniform again
+    with pytest.raises(ConfigError, match="object_sampling"):
+        config_of("env.object_sampling=greedy")
+
+
+def test_adaptive_actor_moves_its_envs_between_objects_and_labels_every_row():
+    from forcegrasp.acting import Actor
+
+    config = config_of("env.object_sampling=adaptive", "actor.envs_per_actor=2", "actor.demo_episodes=0",
+                       "actor.random_steps=100000", "actor.publish_batch=100000", "learner.recipe=paper",
+                       "env.max_steps=3")
+    actor = Actor(config, "actor-0", seed=0)
+    try:
+        assert actor.env_objects == ["mug", "camera"]  # the assignment picks the first episodes' objects
+        stepped = set()
+        for _ in range(3 * 16):  # 16 episodes of 3 steps per slot
+            actor.step()
+            stepped.update(actor.env_objects)
+            assert [env.object_spec.name for env in actor.envs] == actor.env_objects
+        assert stepped == set(OBJECTS)  # random actions fail everywhere: every object gets drawn
+        assert all(len(pool) > 1 for pool in actor._pool)
+        batch = actor._package()
+        goal = batch.obs[:, -9:]  # the goal pose and palm name the object a row came from
+        for k in np.unique(batch.object_index):
+            rows = goal[batch.object_index == k]
+            assert np.allclose(rows, rows[0]) and not np.allclose(rows[0], goal[batch.object_index != k][0])
+        assert sum(v["episodes"] for v in actor.stats()["objects"].values()) == 32
+    finally:
+        actor.close()
+    # one object (an actor on a spare machine): nothing to draw
+    single = Actor(config_of("env.object_sampling=adaptive", "actor.envs_per_actor=1", "actor.demo_episodes=0",
+                             objects=["camera"]), "actor-0", seed=0)
+    assert single.sampler is None
+    single.close()
 
 
 # --------------------------------------------------------------------------------------------

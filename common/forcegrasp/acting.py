@@ -6,6 +6,8 @@ the same process.
 - With ``env.objects`` its envs step several objects (`forcegrasp.multi_object.assign_objects`: env
   ``j`` of actor ``i`` steps ``objects[(i * envs_per_actor + j) % len(objects)]``); every transition
   and ended episode carries its object's index into the batch's ``objects`` names (statistics only).
+  With ``env.object_sampling = "adaptive"`` that is each env's first object; later episodes draw
+  theirs from `forcegrasp.multi_object.AdaptiveObjectSampler` (an env slot keeps one env per object).
 - With ``actor.demo_episodes`` (default: the recipe's number for the object,
   `forcegrasp.recipes.DEMOS_PER_ENV`) each env first plays that many episodes of the scripted approach
   (`forcegrasp.scripted`) *told the true object offset*: demonstrations that put the success
@@ -36,7 +38,7 @@ from forcegrasp.nstep import NStepAccumulator
 from forcegrasp.policy import Policy
 from forcegrasp.policy_file import PolicyMetadata
 from forcegrasp.protocol import TransitionBatch
-from forcegrasp.multi_object import actor_index, assign_objects, run_objects
+from forcegrasp.multi_object import AdaptiveObjectSampler, actor_index, assign_objects, run_objects
 from forcegrasp.runtime import make_env
 from forcegrasp.recipes import demo_episodes, sac_config
 from forcegrasp.scripted import ScriptedApproach
@@ -53,6 +55,7 @@ class Actor:
         self.env_objects = assign_objects(self.objects, n, actor_index(actor_id))
         self._object_ix = np.array([self.objects.index(o) for o in self.env_objects], np.uint8)
         self.envs = [make_env(config, o) for o in self.env_objects]
+        self._pool = [{o: env} for o, env in zip(self.env_objects, self.envs)]  # slot i's env of each object
         e = config.env
         self.curriculum = (RandomisationCurriculum(e.curriculum_success, e.curriculum_window, e.curriculum_stages)
                            if e.curriculum_success else None)
@@ -63,6 +66,8 @@ class Actor:
                 ", ".join(dict.fromkeys(self.env_objects)), len(self.objects), ", ".join(self.objects))
         base_seed = config.run.seed + 1000 if seed is None else seed
         self.rng = np.random.default_rng(base_seed)
+        adaptive = config.env.object_sampling == "adaptive" and len(self.objects) > 1
+        self.sampler = AdaptiveObjectSampler(self.objects, np.random.default_rng([base_seed, 1])) if adaptive else None
         self.obs = np.stack([env.reset(seed=base_seed + i)[0] for i, env in enumerate(self.envs)])
         self.obs_dim, self.act_dim = self.obs.shape[1], task.ACT_DIM
         sac = sac_config(config)  # the learner's n-step horizon, discount and critic inputs
@@ -87,7 +92,7 @@ class Actor:
     def _set_level(self) -> None:
         """Every env draws its next episode's conditions at the curriculum's level."""
         if self.curriculum is not None:
-            for env in self.envs:
+            for env in (env for pool in self._pool for env in pool.values()):
                 env.randomisation_level = self.curriculum.level
 
     def _new_demo(self, i: int) -> ScriptedApproach | None:
@@ -96,6 +101,19 @@ class Actor:
             return None
         env = self.envs[i]
         return ScriptedApproach(env, believed_offset=env.offset)
+
+    def _switch(self, i: int, name: str):
+        """Env slot ``i`` now steps ``name``: its env of that object, built (and seeded from the
+        actor's stream) on first use."""
+        if name not in self._pool[i]:
+            env = make_env(self.config, name)
+            env.reset(seed=int(self.rng.integers(2**31)))
+            if self.curriculum is not None:
+                env.randomisation_level = self.curriculum.level
+            self._pool[i][name] = env
+        self.envs[i], self.env_objects[i] = self._pool[i][name], name
+        self._object_ix[i] = self.objects.index(name)
+        return self.envs[i]
 
     def update(self, params: dict[str, np.ndarray], meta: PolicyMetadata, version: int) -> bool:
         """Swap in a newer policy; False for one older than ours. Raises ValueError for a policy
@@ -153,6 +171,10 @@ class Actor:
                     self.by_object[self.env_objects[i]]["successes"] += bool(info["success"])
                     if self.curriculum is not None and self.curriculum.record(info["success"]):
                         self._set_level()
+                    if self.sampler is not None:
+                        self.sampler.record(self.env_objects[i], info["success"])
+                if self.sampler is not None and self._demos_left[i] <= 0:
+                    env = self._switch(i, self.sampler.draw())
                 self._returns[i], self._lengths[i] = 0.0, 0
                 next_obs, _ = env.reset()
                 self._demo[i] = self._new_demo(i)
@@ -196,5 +218,5 @@ class Actor:
                 **({"objects": {o: dict(v) for o, v in self.by_object.items()}} if len(self.objects) > 1 else {})}
 
     def close(self) -> None:
-        for env in self.envs:
+        for env in (env for pool in self._pool for env in pool.values()):
             env.close()

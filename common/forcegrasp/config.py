@@ -59,6 +59,9 @@ class EnvConfig:
     objects: list[str] = _f([], "objects trained in one run by one learner (forcegrasp.multi_object: env j of actor i "
                                 "steps objects[(i * envs_per_actor + j) % len]; the evaluator scores each; empty: "
                                 "env.object alone)")
+    object_sampling: str = _f("fixed", "with env.objects: fixed (each env keeps its assigned object) or adaptive (each "
+                                       "episode's object drawn towards those the actor fails, forcegrasp.multi_object; "
+                                       "a lever reported apart)", choices=("fixed", "adaptive"))
     force_feedback: bool = _f(True, "observe joint torques (false: the paper's ablation, 53-dim obs)")
     mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)

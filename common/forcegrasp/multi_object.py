@@ -11,6 +11,11 @@ it is through its label's goal pose and goal palm position, so the policy gets n
   ``actor-<i>`` (what ``forcegrasp up`` names its actors; ``actor-<i>.<host>`` too), else a stable
   hash of the id (compose replicas: a spread in expectation). An actor on a spare machine for one
   object is started with ``--set env.objects='["power_drill"]'``: its object set is a part of the run's.
+- **Adaptive sampling** (``env.object_sampling = "adaptive"``, a lever reported apart): the assignment
+  above picks each env's first object only; every later episode's object is drawn by
+  `AdaptiveObjectSampler` from the actor's own recent success, so objects it fails get more episodes
+  (the worst object decides a generalist's score, see Evaluation). Demonstrations stay on the
+  assigned object.
 - **Transitions** carry the object they came from (``objects`` names and a ``u8`` ``object_index``
   per transition and per ended episode, docs/protocol.md): for statistics, never a policy input. The
   learner drops, counts and logs a batch naming an object outside its run's set.
@@ -25,9 +30,13 @@ from __future__ import annotations
 
 import re
 import zlib
+from collections import deque
 from typing import Callable, Mapping, Sequence
 
+import numpy as np
+
 AGGREGATES = ("min", "mean")
+SAMPLING = ("fixed", "adaptive")
 MAX_OBJECTS = 255  # the wire's object index is one byte
 
 
@@ -47,6 +56,34 @@ def assign_objects(objects: Sequence[str], envs_per_actor: int, index: int) -> l
     if not objects:
         raise ValueError("no objects to assign")
     return [objects[(index * envs_per_actor + j) % len(objects)] for j in range(envs_per_actor)]
+
+
+class AdaptiveObjectSampler:
+    """Draws the next episode's object: ``p = (1 - mix) / K + mix * (1 - s_o) / sum(1 - s)``, where
+    ``s_o`` is the success over the last ``window`` policy episodes of object ``o`` (0 before any).
+    The uniform part keeps every object in the data (no forgetting of the solved ones); the rest goes
+    to the objects that still fail, in proportion to how often they fail. All solved: uniform."""
+
+    def __init__(self, objects: Sequence[str], rng: np.random.Generator, window: int = 50, mix: float = 0.5):
+        if not objects:
+            raise ValueError("no objects to sample")
+        self.objects = list(objects)
+        self.rng = rng
+        self.mix = mix
+        self.recent = {o: deque(maxlen=window) for o in self.objects}
+
+    def record(self, name: str, success: bool) -> None:
+        self.recent[name].append(bool(success))
+
+    def probabilities(self) -> np.ndarray:
+        fail = np.array([1.0 - (np.mean(r) if r else 0.0) for r in self.recent.values()])
+        uniform = np.full(len(self.objects), 1.0 / len(self.objects))
+        if fail.sum() <= 0:
+            return uniform
+        return (1.0 - self.mix) * uniform + self.mix * fail / fail.sum()
+
+    def draw(self) -> str:
+        return self.objects[int(self.rng.choice(len(self.objects), p=self.probabilities()))]
 
 
 def policy_objects(meta) -> list[str]:
