@@ -41,6 +41,7 @@ filed). Its keys:
 | `format`, `version` | `"{RECORD_FORMAT}"`, `{RECORD_VERSION}`: every reader refuses a file without them, or of another version |
 | `label` | what the run measured, in words |
 | `seed`, `object`, `force_feedback` | the run's seed, object and observation arm |
+| `objects`, `object_aggregate` | a run of several objects (`env.objects`): the set, and how its marks' per-object figures combine (`min`: the worst object's); `object` is then the set's first |
 | `minutes`, `mark_every` | the wall-clock budget and the minutes between marks |
 | `episodes`, `test_seed` | held-out placements each frozen policy is tested on, and their seed (the `"test"` stream, never used to pick a checkpoint) |
 | `elapsed_s`, `resumed_at_s` | wall-clock trained; where an interrupted run resumed (when it was) |
@@ -75,8 +76,8 @@ def index(paths: list[Path]) -> str:
     by_object = defaultdict(list)
     for path in sorted(paths):
         record = read_record(path)
-        by_object[record["object"]].append((path, record))
-    lines = [HEAD, "## The records, by object", ""]
+        by_object["+".join(record.get("objects") or [record["object"]])].append((path, record))
+    lines = [HEAD, "## The records, by object (or set of objects)", ""]
     for obj, entries in sorted(by_object.items()):
         lines += [f"### {obj} ({len(entries)} records)", "",
                   "| file | label: what it measured | setting | force feedback | seed | minutes | shipped as |",

@@ -397,6 +397,13 @@ def test_experiment_marks_of_a_multi_object_run_are_tested_on_each_object(tmp_pa
     assert score["success_rate"] == min(e["success_rate"] for e in each.values())
     assert each["camera"]["mean_return"] != each["mug"]["mean_return"]  # really two objects' episodes
     assert "the min over objects camera, mug" in summary_lines(record)[0] and "camera " in summary_lines(record)[1]
+    # --plot draws one curve per object, from that object's own figures
+    from forcegrasp.cli.experiment_plot import curves, plot_records
+
+    drawn = curves([record])
+    assert [c["group"] for c in drawn] == ["generalist: camera", "generalist: mug"]
+    assert [c["points"][0][2] for c in drawn] == [each["camera"]["success_rate"], each["mug"]["success_rate"]]
+    assert plot_records([record], tmp_path / "g.png").stat().st_size > 10_000
 
 
 def test_eval_tests_a_generalist_zero_shot_on_an_object_it_never_saw(tmp_path, capsys):
