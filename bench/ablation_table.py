@@ -141,8 +141,8 @@ def table(paths: list[Path]) -> str:
     groups = defaultdict(list)
     for path in paths:
         record = read_record(path)
-        if record.get("conditions"):  # scored on a mix of test conditions: the robustness table's
-            continue
+        if record.get("conditions") or len(record.get("objects") or []) > 1:
+            continue  # a mix of test conditions: the robustness table's; several objects: mark_table's
         key = (record["object"], bool(record["force_feedback"]), lever_name(settings(record), record["object"]))
         groups[key].append(record)
     lines = ["| object | force feedback | setting | seeds | " + " | ".join(f"{m:.0f} min" for m in MARKS)

@@ -42,12 +42,14 @@ def minutes_to(record: dict, rate: float) -> float | None:
 
 
 def run_name(record: dict) -> str:
-    return f"{record.get('label') or '?'}, {record['object']}, seed {record['seed']}" + (
+    objects = "+".join(record.get("objects") or [record["object"]])
+    return f"{record.get('label') or '?'}, {objects}, seed {record['seed']}" + (
         "" if record.get("force_feedback", True) else ", no force feedback")
 
 
 def marks_table(records: list[dict]) -> str:
-    """One markdown table: four rows per run (pick, latest, online, env steps), a column per mark."""
+    """One markdown table: four rows per run (pick, latest, online, env steps), a column per mark;
+    a run of several objects adds its pick's figure on each object (the pick's row is their min)."""
     minutes = sorted({m["minute"] for r in records for m in r.get("marks", [])})
     lines = ["| run | minute | " + " | ".join(f"{m:g}" for m in minutes) + " |",
              "|---|---|" + "---:|" * len(minutes)]
@@ -60,6 +62,9 @@ def marks_table(records: list[dict]) -> str:
 
         lines.append(row(f"{run_name(record)} | pick ({record.get('episodes', '?')} placements)",
                          lambda m: _pct(_test(m, "best"))))
+        for obj in record.get("objects") or [] if len(record.get("objects") or []) > 1 else []:
+            lines.append(row(f"| pick on {obj}", lambda m, o=obj: _pct(
+                (m.get("test", {}).get("best", {}).get("objects", {}).get(o) or {}).get("success_rate"))))
         lines.append(row("| latest snapshot", lambda m: _pct(_test(m, "latest"))))
         lines.append(row("| online (last 100 episodes)",
                          lambda m: _pct((m.get("online") or {}).get("success_rate"))))

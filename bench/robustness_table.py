@@ -2,7 +2,7 @@
 run, the held-out success of the evaluator's pick at each mark under every test condition
 (`forcegrasp.conditions`), their mean, and the run's environment steps and steps per second; a
 run is named as its record (``experiments/<name>.json``).
-Only records made with ``evaluator.conditions`` take part; every file must be a version-2 experiment
+Only records of one object made with ``evaluator.conditions`` take part; every file must be a version-2 experiment
 record (`forcegrasp.cli.experiment.check_record`).
 
     python bench/robustness_table.py experiments/*.json
@@ -76,7 +76,8 @@ def main(argv=None) -> int:
     parser.add_argument("--write", type=Path, help="put the table between this page's markers instead of printing it")
     args = parser.parse_args(argv)
     try:
-        records = [r for r in map(read_record, args.records) if r.get("conditions")]
+        records = [r for r in map(read_record, args.records)  # one object's runs (several: mark_table.py)
+                   if r.get("conditions") and len(r.get("objects") or []) <= 1]
     except (RecordError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

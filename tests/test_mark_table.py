@@ -55,3 +55,14 @@ def test_records_are_read_only_at_version_2(tmp_path, capsys):
     assert mark_table.main([str(good), str(old)]) == 2
     out = capsys.readouterr()
     assert out.out == "" and "old.json: not a versioned experiment record" in out.err and "version 2" in out.err
+
+
+def test_a_run_of_several_objects_is_named_for_its_set_with_a_row_per_object():
+    r = record("generalist", [(20, 0.4, 0.1, 0.5), (40, 0.8, 0.7, 0.8)])
+    r.update(objects=["mug", "camera"], object="mug")
+    for i, (mug, camera) in enumerate([(0.4, 0.9), (0.8, 1.0)]):
+        r["marks"][i]["test"]["best"]["objects"] = {"mug": {"success_rate": mug}, "camera": {"success_rate": camera}}
+    marks = mark_table.marks_table([r]).splitlines()
+    assert marks[2] == "| generalist, mug+camera, seed 1 | pick (100 placements) | 40 % | 80 % |"
+    assert marks[3:5] == ["| | pick on mug | 40 % | 80 % |", "| | pick on camera | 90 % | 100 % |"]
+    assert marks[5] == "| | latest snapshot | 10 % | 70 % |"

@@ -25,3 +25,13 @@ def test_an_unversioned_record_is_refused(tmp_path, capsys):
     old.write_text(json.dumps({k: v for k, v in json.loads(FIXTURES[0].read_text()).items() if k not in ("format", "version")}))
     assert robustness_table.main([str(FIXTURES[0]), str(old)]) == 2
     assert "old.json: not a versioned experiment record" in capsys.readouterr().err
+
+
+def test_a_run_of_several_objects_is_left_to_the_mark_table(tmp_path, capsys):
+    path = next(p for p in FIXTURES if json.loads(p.read_text()).get("conditions"))
+    several = {**json.loads(path.read_text()), "objects": ["camera", "mug"], "label": "generalist"}
+    (tmp_path / "g.json").write_text(json.dumps(several))
+    assert robustness_table.main([str(path), str(tmp_path / "g.json")]) == 0
+    with_it = capsys.readouterr().out
+    assert robustness_table.main([str(path)]) == 0
+    assert with_it == capsys.readouterr().out and with_it.count("fx-camera-s1") == 2
