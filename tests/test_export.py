@@ -13,6 +13,7 @@ from forcegrasp import ASSETS_DIR
 from forcegrasp.cli import main as cli
 from forcegrasp.env import FunctionalGraspEnv
 from forcegrasp.export import INPUT_NAME, OUTPUT_NAME, export_policy, onnx_metadata, policy_to_onnx
+from forcegrasp.multi_object import policy_objects
 from forcegrasp.policy import OBS_CLIP, Actor, Policy
 from forcegrasp.policy_file import METADATA_KEY, load_policy_file
 
@@ -32,12 +33,13 @@ def run(sess: ort.InferenceSession, obs: np.ndarray) -> np.ndarray:
 
 
 def recorded_observations(policy: Policy, n: int = N_OBS) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` observations the policy sees acting in its own env (episodes seeded 0, 1, ...), and the
-    actions it took on them one at a time."""
-    env = FunctionalGraspEnv.for_policy(policy.metadata)
+    """``n`` observations the policy sees acting in its own env (episodes seeded 0, 1, ..., a policy
+    of several objects on each in turn), and the actions it took on them one at a time."""
+    envs = [FunctionalGraspEnv.for_policy(policy.metadata, o) for o in policy_objects(policy.metadata)]
     observations, actions = [], []
     seed = 0
     while len(observations) < n:
+        env = envs[seed % len(envs)]
         obs, _ = env.reset(seed=seed)
         seed += 1
         while len(observations) < n:
@@ -47,7 +49,8 @@ def recorded_observations(policy: Policy, n: int = N_OBS) -> tuple[np.ndarray, n
             obs, _, terminated, truncated, _ = env.step(action)
             if terminated or truncated:
                 break
-    env.close()
+    for env in envs:
+        env.close()
     return np.asarray(observations, np.float32), np.asarray(actions, np.float32)
 
 
@@ -86,7 +89,8 @@ def test_shipped_policy_exports_and_matches(path, tmp_path):
     assert onnx_metadata(out) == meta
     props = {p.key: p.value for p in model.metadata_props}
     assert props[METADATA_KEY] == meta.to_json()
-    assert props["object_name"] == meta.object_name == path.stem.split("-")[0]
+    assert props["object_name"] == meta.object_name  # "" for a policy of several objects, named for its set
+    assert "+".join(policy_objects(meta)) == path.stem.split("-")[0]
     assert json.loads(props["force_feedback"]) is meta.force_feedback
     assert [tuple(x) for x in json.loads(props["obs_layout"])] == meta.obs_layout
     assert [tuple(x) for x in json.loads(props["action_layout"])] == meta.action_layout
