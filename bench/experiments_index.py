@@ -17,6 +17,7 @@ from pathlib import Path
 from ablation_table import lever_name, settings
 
 from forcegrasp.cli.experiment import RECORD_FORMAT, RECORD_VERSION, RecordError, read_record
+from forcegrasp.cli.experiment_plot import object_set
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = ROOT / "experiments"
@@ -76,7 +77,7 @@ def index(paths: list[Path]) -> str:
     by_object = defaultdict(list)
     for path in sorted(paths):
         record = read_record(path)
-        by_object["+".join(record.get("objects") or [record["object"]])].append((path, record))
+        by_object[object_set(record)].append((path, record))
     lines = [HEAD, "## The records, by object (or set of objects)", ""]
     for obj, entries in sorted(by_object.items()):
         lines += [f"### {obj} ({len(entries)} records)", "",

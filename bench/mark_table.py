@@ -19,6 +19,7 @@ from pathlib import Path
 from ablation_table import steps_per_s, steps_to
 
 from forcegrasp.cli.experiment import RecordError, read_record
+from forcegrasp.cli.experiment_plot import object_set
 
 RATES = (0.5, 0.8, 0.9)
 
@@ -42,8 +43,7 @@ def minutes_to(record: dict, rate: float) -> float | None:
 
 
 def run_name(record: dict) -> str:
-    objects = "+".join(record.get("objects") or [record["object"]])
-    return f"{record.get('label') or '?'}, {objects}, seed {record['seed']}" + (
+    return f"{record.get('label') or '?'}, {object_set(record)}, seed {record['seed']}" + (
         "" if record.get("force_feedback", True) else ", no force feedback")
 
 
@@ -62,7 +62,8 @@ def marks_table(records: list[dict]) -> str:
 
         lines.append(row(f"{run_name(record)} | pick ({record.get('episodes', '?')} placements)",
                          lambda m: _pct(_test(m, "best"))))
-        for obj in record.get("objects") or [] if len(record.get("objects") or []) > 1 else []:
+        several = record.get("objects") or []
+        for obj in several if len(several) > 1 else []:
             lines.append(row(f"| pick on {obj}", lambda m, o=obj: _pct(
                 (m.get("test", {}).get("best", {}).get("objects", {}).get(o) or {}).get("success_rate"))))
         lines.append(row("| latest snapshot", lambda m: _pct(_test(m, "latest"))))

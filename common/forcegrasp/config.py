@@ -28,6 +28,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 from forcegrasp.config_values import ConfigError, coerce as _coerce, parse_literal as _parse_literal  # noqa: F401
 from forcegrasp.conditions import ROBUST_MIX
+from forcegrasp.multi_object import SAMPLING as OBJECT_SAMPLING
 from forcegrasp.task import ACTION_STEPS, PROPRIOCEPTION
 
 ENV_PREFIX = "FORCEGRASP_"
@@ -61,7 +62,7 @@ class EnvConfig:
                                 "env.object alone)")
     object_sampling: str = _f("fixed", "with env.objects: fixed (each env keeps its assigned object) or adaptive (each "
                                        "episode's object drawn towards those the actor fails, forcegrasp.multi_object; "
-                                       "a lever reported apart)", choices=("fixed", "adaptive"))
+                                       "a lever reported apart)", choices=OBJECT_SAMPLING)
     force_feedback: bool = _f(True, "observe joint torques (false: the paper's ablation, 53-dim obs)")
     mass_scale: float = _f(5.0, "object mass multiplier (5 for training, as in the paper)", min=0.0)
     jitter: float = _f(0.02, "object x-y start jitter, metres (uniform within +-jitter)", min=0.0)
